@@ -1,0 +1,40 @@
+# covers-dist: two commands for a new machine (Debian, Python 3.11):
+#   make demo   install everything into .venv/ and run the main job
+#   make test   install everything into .venv/ and run the default test suite
+SHELL := /bin/bash
+PYTHON ?= python3.11
+VENV := .venv
+PIP := $(VENV)/bin/pip
+STAMP := $(VENV)/.covers-dist-installed
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+export RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER := 0
+
+.PHONY: install demo test test-slow bench lint clean-venv
+
+install: $(STAMP)
+
+$(STAMP): requirements/lock.txt pyproject.toml scripts/install_system_deps.sh
+	bash scripts/install_system_deps.sh
+	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade "pip>=24" wheel "setuptools>=68"
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q -r requirements/lock.txt
+	$(PIP) install -q --no-deps --no-build-isolation -e .
+	$(VENV)/bin/python -c "import covers_dist, escnn, metaworld, ray, ot, fastapi, torch; print('covers-dist installed in $(VENV)')"
+	touch $(STAMP)
+
+demo: install
+	$(VENV)/bin/covers-dist demo
+
+test: install
+	$(VENV)/bin/python -m pytest
+
+test-slow: install
+	$(VENV)/bin/python -m pytest -m slow
+
+bench: install
+	$(VENV)/bin/covers-dist bench toy
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,66 @@
+"""The ``covers-dist`` command line.
+
+Subcommands are discovered: every module in :mod:`covers_dist.commands` that defines
+``register(subparsers)`` adds one subcommand, and every module in :mod:`covers_dist.bench`
+that defines ``register(subparsers)`` adds one ``covers-dist bench <name>`` benchmark. A
+registered parser sets ``func`` (called with the parsed args; returns an exit code).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+
+from . import __version__
+from .config import ConfigError
+
+
+def _discover(package: str) -> list:
+    pkg = importlib.import_module(package)
+    mods = []
+    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda i: i.name):
+        if info.name.startswith("_"):
+            continue
+        mod = importlib.import_module(f"{package}.{info.name}")
+        if hasattr(mod, "register"):
+            mods.append(mod)
+    return mods
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="covers-dist",
+        description="COVERS: continual vision-based RL with group symmetries, as a distributed service.",
+    )
+    parser.add_argument("--version", action="version", version=f"covers-dist {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for mod in _discover("covers_dist.commands"):
+        mod.register(sub)
+    bench = sub.add_parser("bench", help="benchmarks that print measured figures (see docs/benchmarks.md)")
+    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH")
+    for mod in _discover("covers_dist.bench"):
+        mod.register(bench_sub)
+    bench.set_defaults(func=lambda args: (bench.print_help(), 2)[1])
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except ConfigError as e:
+        print(f"covers-dist: config error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("covers-dist: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

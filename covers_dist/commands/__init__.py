@@ -1,0 +1,1 @@
+"""Subcommands of ``covers-dist``: one module per command, each with ``register(subparsers)``."""

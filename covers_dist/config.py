@@ -1,0 +1,376 @@
+"""One typed, validated configuration tree for covers-dist.
+
+Every hyperparameter lives here, in frozen dataclasses with a docstring per field (the ``doc``
+metadata). Configs are loaded from YAML files under ``configs/`` and overridden from the command
+line with ``--set section.field=value`` (the value is parsed as YAML: ``--set ppo.lr=1e-4``,
+``--set env.tasks=[reach,push]``).
+
+Errors name the field: an unknown key, a wrong type, a value out of range or an inconsistent
+combination raise :class:`ConfigError` with the dotted path and the bad value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Union
+
+import yaml
+
+__all__ = [
+    "ConfigError",
+    "EnvConfig",
+    "NetworkConfig",
+    "PPOConfig",
+    "ClusteringConfig",
+    "RuntimeConfig",
+    "ApiConfig",
+    "Config",
+    "load_config",
+    "config_from_dict",
+    "config_to_dict",
+    "apply_overrides",
+    "DEFAULT_THRESHOLDS",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown, mistyped or inconsistent."""
+
+
+def _f(default: Any, doc: str, **kw: Any) -> Any:
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda d=default: type(d)(d), metadata={"doc": doc, **kw})
+    return field(default=default, metadata={"doc": doc, **kw})
+
+
+Metric = Literal["wasserstein", "euclidean", "mahalanobis"]
+GroupName = Literal["D4", "C4", "D2", "C2", "D1", "trivial"]
+
+#: Per-metric default thresholds d_eps (paper: W1 1.0; Euclidean 0.3-0.7; Mahalanobis 3-7).
+DEFAULT_THRESHOLDS: dict[str, float] = {"wasserstein": 1.0, "euclidean": 0.5, "mahalanobis": 5.0}
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    suite: Literal["toy", "metaworld"] = _f("toy", "Task family: pure-numpy toy tasks or Meta-World v3.")
+    tasks: list[str] = _f(
+        ["reach", "push", "avoid"],
+        "Base task groups in the stream (toy: reach/push/avoid; metaworld: e.g. reach-v3).",
+    )
+    group: GroupName = _f("D4", "Symmetry group whose elements transform the base tasks.")
+    image_size: int = _f(32, "Side of the square top-down image in pixels.", min=8, max=256)
+    max_episode_steps: int = _f(50, "Episode length (time-limit truncation).", min=1)
+    episodes_per_task: int = _f(20, "Episodes before the stream switches to the next task.", min=1)
+    held_out: int = _f(0, "Number of (group, g) pairs held out of training for generalization tests.", min=0)
+    render_backend: Literal["auto", "egl", "osmesa", "numpy"] = _f(
+        "auto", "Meta-World renderer backend (auto picks a working one)."
+    )
+    camera_shift: float = _f(0.0, "Camera xy shift dp in metres (robustness evaluation).", min=0.0)
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    kind: Literal["equivariant", "cnn"] = _f("equivariant", "Feature extractor: escnn equivariant or plain CNN.")
+    group: GroupName = _f("D4", "Group the equivariant encoder is built for.")
+    channels: list[int] = _f([8, 16, 16, 32], "Regular fields per conv block (CNN twin: matched channels).")
+    hidden: int = _f(64, "Width of the invariant/equivariant head layer.", min=1)
+    init_log_std: float = _f(-0.5, "Initial log standard deviation of the Gaussian policy.")
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    lr: float = _f(3e-4, "Adam learning rate.", gt=0.0)
+    lr_schedule: Literal["constant", "linear"] = _f("constant", "Learning-rate schedule over updates.")
+    gamma: float = _f(0.99, "Discount factor.", min=0.0, max=1.0)
+    gae_lambda: float = _f(0.95, "GAE lambda.", min=0.0, max=1.0)
+    clip_coef: float = _f(0.2, "PPO ratio clip epsilon.", gt=0.0)
+    vf_clip_coef: float | None = _f(0.2, "Value clipping range (null disables value clipping).")
+    ent_coef: float = _f(0.0, "Entropy bonus coefficient.", min=0.0)
+    vf_coef: float = _f(0.5, "Value loss coefficient.", min=0.0)
+    epochs: int = _f(4, "Optimization epochs per update.", min=1)
+    minibatch_size: int = _f(256, "Samples per minibatch.", min=1)
+    max_grad_norm: float = _f(0.5, "Gradient-norm clip.", gt=0.0)
+    target_kl: float | None = _f(None, "Stop the epochs early once approx-KL exceeds this (null: never).")
+    norm_adv: bool = _f(True, "Normalize advantages per minibatch.")
+    total_updates: int = _f(1000, "Horizon of the linear learning-rate schedule, in updates.", min=1)
+
+
+@dataclass(frozen=True)
+class ClusteringConfig:
+    metric: Metric = _f("wasserstein", "Distance between initial-frame feature sets.")
+    threshold: float | None = _f(None, "d_eps; null picks the metric's default (W1 1.0, Euclid 0.5, Mahal 5.0).")
+    buffer_size: int = _f(128, "Initial observations kept per policy buffer B_i.", min=1)
+    replacement: Literal["fifo", "reservoir"] = _f("reservoir", "How a full buffer admits new observations.")
+    initial_frames: int = _f(1, "k: first frames of each episode used for clustering.", min=1)
+    update_every: int = _f(4, "Nu: episodes between assignment + PPO update steps.", min=1)
+    feature_source: Literal["own", "shared"] = _f(
+        "own", "Features from each policy's own encoder, or one frozen shared encoder."
+    )
+    max_policies: int = _f(64, "Bank size limit; when reached, the nearest policy is recalled.", min=1)
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    method: Literal["covers", "covers-gt", "covers-cnn", "equi", "cnn"] = _f("covers", "Method variant.")
+    serial: bool = _f(False, "Run every component in one process (no Ray).")
+    num_workers: int = _f(2, "Rollout worker actors.", min=1)
+    envs_per_worker: int = _f(2, "Environments stepped together in each worker.", min=1)
+    steps_per_update: int = _f(400, "Ns: env steps collected per update step.", min=1)
+    total_env_steps: int = _f(20000, "Stop after this many env steps.", min=1)
+    num_cpus: int = _f(2, "CPUs for a locally started Ray instance.", min=1)
+    num_gpus: float = _f(0.0, "GPUs per learner actor (0: CPU learners).", min=0.0)
+    ray_address: str | None = _f(None, "Address of a running Ray cluster (null: start a local one).")
+    run_dir: str = _f("runs/latest", "Directory for metrics, checkpoints and plots.")
+    checkpoint_every: int = _f(10, "Update steps between checkpoints.", min=1)
+    torch_threads: int = _f(1, "torch intra-op threads per process.", min=1)
+    log_every_s: float = _f(5.0, "Seconds between console progress lines.", gt=0.0)
+
+
+@dataclass(frozen=True)
+class ApiConfig:
+    enabled: bool = _f(False, "Start the HTTP service next to training.")
+    host: str = _f("127.0.0.1", "Bind address (loopback unless configured).")
+    port: int = _f(8000, "TCP port.", min=0, max=65535)
+    token: str | None = _f(None, "Bearer token required on every route but health checks (or COVERS_API_TOKEN).")
+    max_body_bytes: int = _f(8_000_000, "Largest accepted request body.", min=1)
+
+
+@dataclass(frozen=True)
+class Config:
+    name: str = _f("covers", "Run name.")
+    seed: int = _f(0, "Global random seed.", min=0)
+    env: EnvConfig = field(default_factory=EnvConfig, metadata={"doc": "Tasks and rendering."})
+    network: NetworkConfig = field(default_factory=NetworkConfig, metadata={"doc": "Actor-critic network."})
+    ppo: PPOConfig = field(default_factory=PPOConfig, metadata={"doc": "PPO learner."})
+    clustering: ClusteringConfig = field(default_factory=ClusteringConfig, metadata={"doc": "Policy assignment."})
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig, metadata={"doc": "Actors and the loop."})
+    api: ApiConfig = field(default_factory=ApiConfig, metadata={"doc": "HTTP service."})
+
+    def __post_init__(self) -> None:
+        _validate_cross_fields(self)
+
+    @property
+    def threshold(self) -> float:
+        """The effective d_eps (the configured one, or the metric's default)."""
+        t = self.clustering.threshold
+        return DEFAULT_THRESHOLDS[self.clustering.metric] if t is None else t
+
+
+def _validate_cross_fields(cfg: Config) -> None:
+    from .symmetry import get_group
+
+    if not cfg.env.tasks:
+        raise ConfigError("env.tasks: at least one task is needed")
+    if len(set(cfg.env.tasks)) != len(cfg.env.tasks):
+        raise ConfigError(f"env.tasks: duplicate task names in {cfg.env.tasks}")
+    if cfg.env.suite == "toy" and cfg.env.image_size % 2:
+        raise ConfigError(f"env.image_size={cfg.env.image_size}: the toy suite needs an even size")
+    env_group = {g for g in get_group(cfg.env.group)}
+    net_group = {g for g in get_group(cfg.network.group)}
+    if cfg.network.kind == "equivariant" and not env_group <= net_group:
+        raise ConfigError(
+            f"network.group={cfg.network.group} does not contain env.group={cfg.env.group}: "
+            "the policy could not treat every transformed task as equivalent"
+        )
+    size = cfg.env.image_size
+    if size % (2 ** len(cfg.network.channels)):
+        raise ConfigError(
+            f"env.image_size={size} must be divisible by 2**len(network.channels)="
+            f"{2 ** len(cfg.network.channels)} (each conv block halves the image exactly)"
+        )
+    if any(c < 1 for c in cfg.network.channels):
+        raise ConfigError(f"network.channels={cfg.network.channels}: every entry must be >= 1")
+    if cfg.clustering.threshold is not None and cfg.clustering.threshold <= 0:
+        raise ConfigError(f"clustering.threshold={cfg.clustering.threshold} must be > 0")
+    if cfg.runtime.method in ("covers-cnn", "cnn") and cfg.network.kind != "cnn":
+        raise ConfigError(f"runtime.method={cfg.runtime.method} needs network.kind=cnn, got {cfg.network.kind}")
+    if cfg.runtime.method in ("covers", "covers-gt", "equi") and cfg.network.kind != "equivariant":
+        raise ConfigError(
+            f"runtime.method={cfg.runtime.method} needs network.kind=equivariant, got {cfg.network.kind}"
+        )
+    if cfg.ppo.minibatch_size > cfg.runtime.steps_per_update:
+        raise ConfigError(
+            f"ppo.minibatch_size={cfg.ppo.minibatch_size} exceeds runtime.steps_per_update="
+            f"{cfg.runtime.steps_per_update}"
+        )
+    if not cfg.runtime.serial and cfg.runtime.ray_address is None and cfg.runtime.num_workers > 64:
+        raise ConfigError(f"runtime.num_workers={cfg.runtime.num_workers} is too many for a local Ray instance")
+
+
+# ---- conversion ------------------------------------------------------------------------------
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return " | ".join(repr(a) for a in typing.get_args(tp))
+    if origin in (Union, types.UnionType):
+        return " | ".join(_type_name(a) for a in typing.get_args(tp))
+    if origin is list:
+        return f"list[{_type_name(typing.get_args(tp)[0])}]"
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any, path: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, path)
+            except ConfigError as e:
+                errors.append(str(e))
+        raise ConfigError(f"{path}: expected {_type_name(tp)}, got {value!r}")
+    if origin is Literal:
+        choices = typing.get_args(tp)
+        if value not in choices:
+            raise ConfigError(f"{path}: expected one of {list(choices)}, got {value!r}")
+        return value
+    if origin is list:
+        (item,) = typing.get_args(tp)
+        if isinstance(value, tuple):
+            value = list(value)
+        if not isinstance(value, list):
+            raise ConfigError(f"{path}: expected a list of {_type_name(item)}, got {value!r}")
+        return [_coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{path}: expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{path}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, str):  # YAML 1.1 reads "1e-4" (no dot) as a string
+            try:
+                value = float(value)
+            except ValueError:
+                raise ConfigError(f"{path}: expected a number, got {value!r}") from None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{path}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{path}: expected a string, got {value!r}")
+        return value
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, path)
+    raise ConfigError(f"{path}: unsupported field type {tp!r}")  # pragma: no cover
+
+
+def _check_range(value: Any, meta: typing.Mapping[str, Any], path: str) -> None:
+    if value is None or isinstance(value, (list, str, bool)):
+        return
+    if "min" in meta and value < meta["min"]:
+        raise ConfigError(f"{path}={value!r} must be >= {meta['min']}")
+    if "max" in meta and value > meta["max"]:
+        raise ConfigError(f"{path}={value!r} must be <= {meta['max']}")
+    if "gt" in meta and value <= meta["gt"]:
+        raise ConfigError(f"{path}={value!r} must be > {meta['gt']}")
+
+
+def _build(cls: type, data: Any, path: str) -> Any:
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path or 'config'}: expected a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        where = f"{path}." if path else ""
+        raise ConfigError(
+            f"unknown config key(s) {[where + str(u) for u in unknown]}; "
+            f"valid keys{' in ' + path if path else ''}: {sorted(fields)}"
+        )
+    kwargs = {}
+    for name, value in data.items():
+        sub = f"{path}.{name}" if path else name
+        kwargs[name] = _coerce(value, hints[name], sub)
+        _check_range(kwargs[name], fields[name].metadata, sub)
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as e:  # pragma: no cover - defensive
+        raise ConfigError(f"{path or 'config'}: {e}") from e
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """Build and validate a :class:`Config` from a nested mapping."""
+    return _build(Config, data, "")
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """The config as a plain nested dict (YAML/JSON friendly)."""
+    return dataclasses.asdict(cfg)
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str] | None) -> dict[str, Any]:
+    """Apply ``section.field=value`` overrides (values parsed as YAML) to a nested dict."""
+    data = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items()}
+    for item in overrides or []:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} must look like section.field=value")
+        key, raw = item.split("=", 1)
+        parts = key.strip().split(".")
+        if not all(parts):
+            raise ConfigError(f"override {item!r} has an empty key part")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError as e:
+            raise ConfigError(f"override {item!r}: value is not valid YAML ({e})") from e
+        node = data
+        for p in parts[:-1]:
+            child = node.get(p)
+            if child is None:
+                child = node[p] = {}
+            elif not isinstance(child, dict):
+                raise ConfigError(f"override {item!r}: {p} is not a section")
+            else:
+                child = node[p] = dict(child)
+            node = child
+        node[parts[-1]] = value
+    return data
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
+    """Load a YAML config (or the defaults when ``path`` is None) and apply overrides."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"config file {str(p)!r} does not exist")
+        try:
+            loaded = yaml.safe_load(p.read_text())
+        except yaml.YAMLError as e:
+            raise ConfigError(f"config file {str(p)!r} is not valid YAML: {e}") from e
+        if loaded is None:
+            loaded = {}
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"config file {str(p)!r} must hold a mapping at the top level")
+        data = loaded
+    return config_from_dict(apply_overrides(data, overrides))
+
+
+def describe(cls: type = Config, prefix: str = "") -> list[tuple[str, str, Any, str]]:
+    """(dotted name, type, default, doc) for every field, for ``covers-dist config --describe``."""
+    out = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        name = prefix + f.name
+        if dataclasses.is_dataclass(tp):
+            out.extend(describe(tp, name + "."))
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        out.append((name, _type_name(tp), default, f.metadata.get("doc", "")))
+    return out

@@ -1,0 +1,93 @@
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from covers_dist.cli import main
+from covers_dist.config import Config, ConfigError, config_from_dict, describe, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_defaults_and_every_shipped_config_load():
+    cfg = load_config()
+    assert isinstance(cfg, Config) and cfg.threshold == 1.0
+    for path in sorted((ROOT / "configs").glob("*.yaml")):
+        load_config(path)
+
+
+def test_overrides_parse_values_as_yaml():
+    cfg = load_config(ROOT / "configs/smoke.yaml", ["ppo.lr=1e-4", "env.tasks=[reach, push]", "ppo.target_kl=null"])
+    assert cfg.ppo.lr == 1e-4 and cfg.env.tasks == ["reach", "push"] and cfg.ppo.target_kl is None
+    assert load_config(None, ["clustering.metric=euclidean"]).threshold == 0.5
+
+
+@pytest.mark.parametrize(
+    "data, match",
+    [
+        ({"ppo": {"lrr": 1}}, r"unknown config key\(s\) \['ppo.lrr'\]"),
+        ({"bogus": 1}, r"unknown config key\(s\) \['bogus'\]"),
+        ({"ppo": {"epochs": "four"}}, r"ppo.epochs: expected an integer, got 'four'"),
+        ({"ppo": {"epochs": 2.5}}, r"ppo.epochs: expected an integer"),
+        ({"ppo": {"norm_adv": "yes"}}, r"ppo.norm_adv: expected true or false"),
+        ({"ppo": {"lr": -1.0}}, r"ppo.lr=-1.0 must be > 0.0"),
+        ({"clustering": {"metric": "cosine"}}, r"clustering.metric: expected one of"),
+        ({"env": {"tasks": "reach"}}, r"env.tasks: expected a list"),
+        ({"env": {"image_size": 4}}, r"env.image_size=4 must be >= 8"),
+        ({"env": {"image_size": 40}}, r"env.image_size=40 must be divisible by 2\*\*len\(network.channels\)"),
+        ({"env": {"group": "D4"}, "network": {"group": "C4"}}, r"network.group=C4 does not contain env.group=D4"),
+        ({"runtime": {"method": "cnn"}}, r"runtime.method=cnn needs network.kind=cnn"),
+        ({"ppo": {"minibatch_size": 1000}, "runtime": {"steps_per_update": 100}}, r"ppo.minibatch_size=1000 exceeds"),
+        ({"env": {"tasks": ["reach", "reach"]}}, r"duplicate task names"),
+        ({"ppo": []}, r"ppo: expected a mapping"),
+    ],
+)
+def test_bad_configs_name_the_field(data, match):
+    with pytest.raises(ConfigError, match=match):
+        config_from_dict(data)
+
+
+def test_bad_override_and_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="must look like section.field=value"):
+        load_config(None, ["ppo.lr"])
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("ppo: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
+
+
+def test_config_is_frozen_and_every_field_documented():
+    cfg = load_config()
+    with pytest.raises(Exception):
+        cfg.ppo.lr = 1.0  # type: ignore[misc]
+    for name, _tp, _default, doc in describe():
+        assert doc, f"{name} has no docstring"
+
+
+def test_cli_help_lists_subcommands(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for sub in ("config", "demo", "bench"):
+        assert sub in out
+
+
+def test_cli_reports_config_errors(capsys):
+    assert main(["config", "--set", "ppo.epochs=zero"]) == 2
+    assert "ppo.epochs: expected an integer" in capsys.readouterr().err
+
+
+def test_console_script_starts():
+    exe = Path(sys.executable).parent / "covers-dist"
+    out = subprocess.run([str(exe), "bench", "--help"], capture_output=True, text=True, check=True).stdout
+    assert "toy" in out
+
+
+def test_demo_writes_grid(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path), "--episodes", "1", "--image-size", "16"]) == 0
+    assert (tmp_path / "toy_grid.png").stat().st_size > 0
+    assert "mismatches (image or reward): 0" in capsys.readouterr().out
