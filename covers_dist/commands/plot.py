@@ -1,0 +1,126 @@
+"""``covers-dist plot RUN_DIR``: figures of a run, written into the run directory.
+
+* ``success_return.png``: success and return per task group over env steps (moving average);
+* ``policy_timeline.png``: the policy id of every episode over time, coloured by its true group
+  (the clustering at a glance: one policy per colour band is a perfect clustering);
+* ``ari_policies.png``: the ARI and the number of policies over env steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("plot", help="write PNG figures of a run (success, return, policy timeline, ARI)")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory written by covers-dist train")
+    p.add_argument("--window", type=int, default=10, help="moving-average window in episodes (default: 10)")
+    p.set_defaults(func=run)
+
+
+def _read_jsonl(path: Path) -> list[dict[str, Any]]:
+    if not path.is_file():
+        raise SystemExit(f"covers-dist plot: {path} is missing (is this a run directory?)")
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as e:
+            raise SystemExit(f"covers-dist plot: {path}:{n} is not valid JSON ({e})") from None
+    return rows
+
+
+def _dedupe(rows: list[dict[str, Any]], key: str) -> list[dict[str, Any]]:
+    """Keep the last row per key (a resumed run may repeat the iterations after its checkpoint)."""
+    by_key = {r[key]: r for r in rows if key in r}
+    return [by_key[k] for k in sorted(by_key)]
+
+
+def _moving(x: np.ndarray, w: int) -> np.ndarray:
+    if len(x) == 0:
+        return x
+    w = max(1, min(w, len(x)))
+    c = np.cumsum(np.insert(x, 0, 0.0))
+    out = np.empty_like(x, dtype=float)
+    out[w - 1 :] = (c[w:] - c[:-w]) / w
+    out[: w - 1] = c[1:w] / np.arange(1, w)
+    return out
+
+
+def make_plots(run_dir: str | Path, window: int = 10) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    run = Path(run_dir)
+    episodes = _dedupe(_read_jsonl(run / "episodes.jsonl"), "episode_index")
+    metrics = _dedupe(_read_jsonl(run / "metrics.jsonl"), "iteration")
+    if not episodes or not metrics:
+        raise SystemExit(f"covers-dist plot: {run} has no episodes yet")
+    tasks = sorted({e["task"] for e in episodes}, key=lambda t: min(e["group_id"] for e in episodes if e["task"] == t))
+    colors = {t: plt.cm.tab10(i % 10) for i, t in enumerate(tasks)}
+    out: list[Path] = []
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    for t in tasks:
+        rows = [e for e in episodes if e["task"] == t]
+        steps = np.array([e["env_steps"] for e in rows])
+        axes[0].plot(steps, _moving(np.array([e["success"] for e in rows], float), window), label=t, color=colors[t])
+        axes[1].plot(steps, _moving(np.array([e["return"] for e in rows], float), window), label=t, color=colors[t])
+    axes[0].set(xlabel="env steps", ylabel=f"success (moving avg, {window} episodes)", ylim=(-0.05, 1.05))
+    axes[1].set(xlabel="env steps", ylabel=f"return (moving avg, {window} episodes)")
+    for ax in axes:
+        ax.legend(title="task group")
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"{run.name}: success and return per task group")
+    out.append(_save(fig, run / "success_return.png"))
+
+    fig, ax = plt.subplots(figsize=(12, 3.5))
+    for t in tasks:
+        rows = [e for e in episodes if e["task"] == t]
+        ax.scatter(
+            [e["episode_index"] for e in rows], [e.get("assigned_policy", e["policy_id"]) for e in rows],
+            s=10, color=colors[t], label=t,
+        )
+    ax.set(xlabel="episode", ylabel="assigned policy id", title="policy id of every episode, coloured by true group")
+    ax.yaxis.get_major_locator().set_params(integer=True)
+    ax.legend(title="true group", loc="upper left", fontsize=8)
+    ax.grid(alpha=0.3)
+    out.append(_save(fig, run / "policy_timeline.png"))
+
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    steps = [m["env_steps"] for m in metrics]
+    ax.plot(steps, [np.nan if m.get("ari") is None else m["ari"] for m in metrics], color="tab:blue", label="ARI")
+    ax.set(xlabel="env steps", ylabel="adjusted Rand index", ylim=(-0.1, 1.05))
+    ax2 = ax.twinx()
+    ax2.step(steps, [m["num_policies"] for m in metrics], color="tab:orange", where="post", label="policies")
+    ax2.set_ylabel("number of policies")
+    ax2.yaxis.get_major_locator().set_params(integer=True)
+    fig.legend(loc="lower right")
+    ax.grid(alpha=0.3)
+    ax.set_title("clustering quality and bank size")
+    out.append(_save(fig, run / "ari_policies.png"))
+    return out
+
+
+def _save(fig: Any, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return path
+
+
+def run(args: argparse.Namespace) -> int:
+    for path in make_plots(args.run_dir, args.window):
+        print(path)
+    return 0

@@ -1,0 +1,137 @@
+"""Where the components run: in this process (serial) or as Ray actors.
+
+Both backends expose the same calls to the driver, so the COVERS loop is written once. The
+serial backend calls the plain objects directly (debugging, fast tests, determinism checks);
+the Ray backend calls the actors made in :mod:`covers_dist.runtime.actors`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from ..config import Config
+from .rollout import EpisodeSpec
+
+__all__ = ["SerialBackend", "RayBackend", "split_first_frames", "summarize_episode"]
+
+
+def summarize_episode(ep: dict[str, Any]) -> dict[str, Any]:
+    """The per-episode row the driver logs (no frames)."""
+    return {
+        "episode_index": int(ep["episode_index"]),
+        "task": ep["task"],
+        "g": ep["g"],
+        "group_id": int(ep["group_id"]),
+        "policy_id": int(ep["policy_id"]),
+        "return": float(ep["reward"].sum()),
+        "success": float(ep["success"].max()) if len(ep["success"]) else 0.0,
+        "length": int(len(ep["reward"])),
+    }
+
+
+def split_first_frames(episodes: list[dict[str, Any]], k: int) -> tuple[list[dict], list[dict]]:
+    """(first-k observations of each episode, summaries): all that leaves a worker for the driver."""
+    firsts = [{"image": ep["image"][:k].copy(), "proprio": ep["proprio"][:k].copy()} for ep in episodes]
+    return firsts, [summarize_episode(ep) for ep in episodes]
+
+
+class SerialBackend:
+    """Every component in this process."""
+
+    name = "serial"
+
+    def __init__(self, cfg: Config, run_dir: Path) -> None:
+        from .clustering_service import ClusteringService
+        from .rollout import RolloutWorker
+
+        self.cfg = cfg
+        self.workers = [RolloutWorker(cfg, i) for i in range(cfg.runtime.num_workers)]
+        self.clustering = ClusteringService(cfg, str(run_dir))
+        self.learners: dict[int, Any] = {}
+
+    def publish(self, weights: Any) -> Any:
+        return weights
+
+    def sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any):
+        firsts, summaries, episodes = [], [], []
+        for worker, specs in zip(self.workers, plan):
+            if not specs:
+                continue
+            eps = worker.sample(specs, policy_id, version, handle)
+            f, s = split_first_frames(eps, self.cfg.clustering.initial_frames)
+            firsts += f
+            summaries += s
+            episodes += eps
+        return firsts, summaries, episodes
+
+    def call_clustering(self, method: str, *args: Any) -> Any:
+        return getattr(self.clustering, method)(*args)
+
+    def ensure_learner(self, policy_id: int) -> None:
+        if policy_id not in self.learners:
+            from .learner import PolicyLearner
+
+            self.learners[policy_id] = PolicyLearner(self.cfg, policy_id)
+
+    def call_learner(self, policy_id: int, method: str, *args: Any) -> Any:
+        return getattr(self.learners[policy_id], method)(*args)
+
+    def shutdown(self) -> None:
+        for w in self.workers:
+            w.close()
+
+
+class RayBackend:
+    """Rollout workers, the named clustering actor and one learner actor per policy, on Ray."""
+
+    name = "ray"
+
+    def __init__(self, cfg: Config, run_dir: Path) -> None:
+        import ray
+
+        from .actors import clustering_actor, learner_actor, rollout_actor
+
+        self.ray = ray
+        self.cfg = cfg
+        self.run_dir = str(run_dir)
+        self._learner_cls = learner_actor(cfg)
+        self.workers = [rollout_actor(cfg).remote(cfg, i) for i in range(cfg.runtime.num_workers)]
+        self.clustering = clustering_actor(cfg, self.run_dir)
+        self.learners: dict[int, Any] = {}
+
+    def publish(self, weights: Any) -> Any:
+        return [self.ray.put(weights)]  # wrapped in a list: workers resolve it only when needed
+
+    def sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any):
+        k = self.cfg.clustering.initial_frames
+        calls = [
+            w.sample_split.options(num_returns=3).remote(specs, policy_id, version, handle, k)
+            for w, specs in zip(self.workers, plan)
+            if specs
+        ]
+        firsts, summaries, episode_refs = [], [], []
+        small = self.ray.get([c[0] for c in calls] + [c[1] for c in calls])
+        for f in small[: len(calls)]:
+            firsts += f
+        for s in small[len(calls) :]:
+            summaries += s
+        episode_refs = [c[2] for c in calls]  # frames go worker -> learner, not through the driver
+        return firsts, summaries, episode_refs
+
+    def call_clustering(self, method: str, *args: Any) -> Any:
+        return self.ray.get(getattr(self.clustering, method).remote(*args))
+
+    def ensure_learner(self, policy_id: int) -> None:
+        if policy_id not in self.learners:
+            self.learners[policy_id] = self._learner_cls.remote(self.cfg, policy_id)
+
+    def call_learner(self, policy_id: int, method: str, *args: Any) -> Any:
+        return self.ray.get(getattr(self.learners[policy_id], method).remote(*args))
+
+    def shutdown(self) -> None:
+        for actor in [*self.workers, *self.learners.values(), self.clustering]:
+            try:
+                self.ray.kill(actor, no_restart=True)
+            except Exception:  # noqa: BLE001 - already gone
+                pass

@@ -1,0 +1,120 @@
+"""Atomic, verified run checkpoints.
+
+Layout of ``RUN_DIR/checkpoints/``::
+
+    ckpt-000012/            one complete checkpoint (iteration 12)
+        manifest.json       format version, iteration, and the sha256 of every other file
+        driver.json         counters, stream position, RNG state
+        config.yaml         the run's config
+        bank/               the policy bank (covers_dist.clustering persistence format)
+        learners/policy-N.pt  model + optimizer + schedule state of each learner (torch.save)
+
+A checkpoint is written into a hidden temporary directory and renamed into place only when every
+file is written and hashed, so a crash leaves either the old or the new checkpoint, never half of
+one. :func:`latest_valid_checkpoint` checks hashes and falls back to the previous checkpoint with
+a message when the newest one is corrupt. Policy weights are saved with the models' documented
+state-dict mode (see ``covers_dist.models``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any, Callable
+
+__all__ = ["CheckpointError", "write_checkpoint", "latest_valid_checkpoint", "verify_checkpoint", "list_checkpoints"]
+
+FORMAT_VERSION = 1
+KEEP = 3
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, partial, corrupt or of another format version."""
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _files(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob("*") if p.is_file() and p.name != "manifest.json")
+
+
+def write_checkpoint(run_dir: str | Path, iteration: int, writer: Callable[[Path], None]) -> Path:
+    """Create ``ckpt-<iteration>`` atomically; ``writer(tmp_dir)`` writes the payload files."""
+    root = Path(run_dir) / "checkpoints"
+    root.mkdir(parents=True, exist_ok=True)
+    final = root / f"ckpt-{iteration:06d}"
+    tmp = root / f".tmp-ckpt-{iteration:06d}-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    try:
+        writer(tmp)
+        manifest = {
+            "format_version": FORMAT_VERSION,
+            "iteration": iteration,
+            "files": {str(p.relative_to(tmp)): _sha256(p) for p in _files(tmp)},
+        }
+        with open(tmp / "manifest.json", "w") as fh:
+            json.dump(manifest, fh, indent=1)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    for old in list_checkpoints(run_dir)[:-KEEP]:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def list_checkpoints(run_dir: str | Path) -> list[Path]:
+    """Complete-looking checkpoint directories, oldest first."""
+    root = Path(run_dir) / "checkpoints"
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith("ckpt-"))
+
+
+def verify_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The manifest of a checkpoint whose every file is present with its recorded hash."""
+    path = Path(path)
+    mf = path / "manifest.json"
+    if not mf.is_file():
+        raise CheckpointError(f"checkpoint {path.name}: manifest.json is missing (partial checkpoint)")
+    try:
+        manifest = json.loads(mf.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"checkpoint {path.name}: manifest.json is corrupt ({e})") from e
+    if manifest.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(
+            f"checkpoint {path.name}: format version {manifest.get('format_version')!r}, expected {FORMAT_VERSION}"
+        )
+    for rel, digest in manifest.get("files", {}).items():
+        f = path / rel
+        if not f.is_file():
+            raise CheckpointError(f"checkpoint {path.name}: file {rel} is missing")
+        if _sha256(f) != digest:
+            raise CheckpointError(f"checkpoint {path.name}: file {rel} is corrupt (checksum mismatch)")
+    return manifest
+
+
+def latest_valid_checkpoint(run_dir: str | Path, log: Callable[[str], None] = print) -> Path | None:
+    """The newest checkpoint that verifies; corrupt newer ones are reported and skipped."""
+    for path in reversed(list_checkpoints(run_dir)):
+        try:
+            verify_checkpoint(path)
+            return path
+        except CheckpointError as e:
+            log(f"warning: {e}; falling back to the previous checkpoint")
+    return None

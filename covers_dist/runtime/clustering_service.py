@@ -1,0 +1,224 @@
+"""The clustering service: hosts the policy bank and answers queries about it.
+
+A plain class: in a Ray run it is the named clustering actor (see :mod:`.actors`), in serial mode
+the driver calls it directly, and ``covers-dist serve --checkpoint`` loads one read-only.
+
+* It receives only the first-k observations of each episode, never whole trajectories.
+* Features come from each policy's own network (``clustering.feature_source: own``) or from one
+  frozen encoder (``shared``). The driver passes ``{policy id: (version, weights)}`` with every
+  assignment; weights are loaded only when a version changed.
+* Single-policy methods (``equi``, ``cnn``) use a bank capped at one policy, so every batch is
+  recalled to policy 0 (and the ARI shows what one policy for every group means).
+* Crash safety: after each assignment the bank and the service's own counters are persisted
+  atomically under ``RUN_DIR/clustering_live/``; a restarted actor reloads them, and an
+  assignment retried for episodes the bank already holds returns the stored record (no doubles).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..clustering import PolicyBank
+from ..clustering.features import SharedFeatures
+from ..config import Config
+from ..envs import suite_layout
+from ..models import build_actor_critic
+from .learner import policy_seed
+
+__all__ = ["ClusteringService"]
+
+SINGLE_POLICY_METHODS = ("equi", "cnn")
+LIVE_DIR = "clustering_live"
+
+
+class ClusteringService:
+    def __init__(self, cfg: Config, run_dir: str | None = None, read_only: bool = False) -> None:
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        self.cfg = cfg
+        self.run_dir = Path(run_dir) if run_dir else None
+        self.read_only = read_only
+        self.layout = suite_layout(cfg.env.suite, cfg.env.image_size)
+        self.models: dict[int, Any] = {}
+        self.versions: dict[int, int] = {}
+        self._lock = threading.RLock()
+        self.last_iteration = -1
+        self.last_record: dict[str, Any] | None = None
+        self.progress: dict[str, Any] = {}
+        self.group_names: dict[int, str] = {i: t for i, t in enumerate(cfg.env.tasks)}
+        self.bank = self._new_bank()
+        if self.run_dir is not None and (self.run_dir / LIVE_DIR / "service.json").is_file() and not read_only:
+            self.load(str(self.run_dir / LIVE_DIR))
+
+    # ---- construction ------------------------------------------------------------------------
+    def _feature_fn(self) -> Any:
+        if self.cfg.clustering.feature_source == "shared":
+            torch.manual_seed(policy_seed(self.cfg.seed, 0))
+            shared = build_actor_critic(self.cfg.network, self.layout).eval()
+            return SharedFeatures(shared.features_np)
+        return self._own_features
+
+    def _new_bank(self) -> PolicyBank:
+        bank = PolicyBank.from_config(self.cfg, self._feature_fn())
+        if self.cfg.runtime.method in SINGLE_POLICY_METHODS:
+            bank.max_policies = 1
+        return bank
+
+    def _own_features(self, policy_id: int, obs: dict[str, np.ndarray]) -> np.ndarray:
+        model = self.models.get(policy_id)
+        if model is None:
+            raise ValueError(f"no weights received yet for policy {policy_id}")
+        return model.features_np(obs)
+
+    def _sync_weights(self, weights_map: dict[int, tuple[int, Any]]) -> None:
+        for pid, (version, handle) in weights_map.items():
+            pid = int(pid)
+            if self.versions.get(pid) == version:
+                continue
+            weights = handle
+            if isinstance(handle, list):
+                import ray
+
+                weights = ray.get(handle[0])
+            if pid not in self.models:
+                self.models[pid] = build_actor_critic(self.cfg.network, self.layout)
+            self.models[pid].set_weights(weights)
+            self.models[pid].eval()
+            self.versions[pid] = version
+
+    # ---- the assignment step -------------------------------------------------------------------
+    def assign(
+        self,
+        iteration: int,
+        obs: dict[str, np.ndarray],
+        episode_indices: list[int],
+        group_ids: list[int],
+        weights_map: dict[int, tuple[int, Any]],
+    ) -> dict[str, Any]:
+        """Assign a batch of episodes (their first-k observations); idempotent per iteration."""
+        with self._lock:
+            if self.read_only:
+                raise PermissionError("this clustering service is read-only")
+            history = self.bank.history
+            if history and list(history[-1].episode_indices) == [int(e) for e in episode_indices]:
+                # a retried call (e.g. after this actor restarted): the bank already holds it
+                self.last_iteration, self.last_record = iteration, history[-1].to_dict()
+                return self.last_record
+            self._sync_weights(weights_map)
+            record = self.bank.assign(obs, episode_indices=episode_indices, group_ids=group_ids).to_dict()
+            self.last_iteration = iteration
+            self.last_record = record
+            self._persist()
+            return record
+
+    def what_if(self, obs: dict[str, np.ndarray]) -> dict[str, Any]:
+        """The assignment the bank would make for ``obs``, without changing anything."""
+        with self._lock:
+            if not len(self.bank):
+                raise LookupError("the policy bank is empty: nothing to compare with yet")
+            return self.bank.what_if(obs).to_dict()
+
+    def record_episodes(self, summaries: list[dict[str, Any]]) -> None:
+        with self._lock:
+            for s in summaries:
+                pid = int(s.get("assigned_policy", s["policy_id"]))
+                if pid in self.bank.entries:
+                    self.bank.record_episode_stats(pid, s["success"], s["return"])
+            self._persist()
+
+    def report(self, row: dict[str, Any]) -> None:
+        """Training progress from the driver (for the metrics endpoints)."""
+        with self._lock:
+            self.progress = {k: v for k, v in row.items() if isinstance(v, (int, float, str, bool)) or v is None}
+
+    # ---- queries -------------------------------------------------------------------------------
+    def current_policy_id(self) -> int | None:
+        return self.bank.current_policy_id
+
+    def summary(self) -> dict[str, Any]:
+        with self._lock:
+            s = self.bank.summary()
+            s["group_names"] = {str(k): v for k, v in self.group_names.items()}
+            return s
+
+    def policy(self, policy_id: int) -> dict[str, Any]:
+        with self._lock:
+            if policy_id not in self.bank.entries:
+                raise KeyError(policy_id)
+            return self.bank.entries[policy_id].summary()
+
+    def last_assignment(self) -> dict[str, Any] | None:
+        return self.last_record
+
+    def assignments(self, since: int = 0, limit: int = 100) -> list[dict[str, Any]]:
+        with self._lock:
+            return [r.to_dict() for r in self.bank.history[since : since + limit]]
+
+    def num_assignments(self) -> int:
+        return len(self.bank.history)
+
+    def metrics(self) -> dict[str, Any]:
+        with self._lock:
+            m = self.bank.metrics()
+            m["num_policies"] = len(self.bank)
+            m["current_policy_id"] = self.bank.current_policy_id
+            m["progress"] = dict(self.progress)
+            return m
+
+    def act(self, obs: dict[str, np.ndarray], policy_id: int | None = None, deterministic: bool = True) -> dict:
+        """The action of a policy (default: the current one) for a batch of observations."""
+        with self._lock:
+            pid = self.bank.current_policy_id if policy_id is None else int(policy_id)
+            if pid is None or pid not in self.models:
+                raise KeyError(pid)
+            actions, logp, values = self.models[pid].act(obs, deterministic=deterministic)
+            return {"policy_id": pid, "action": actions.tolist(), "value": values.tolist()}
+
+    def ping(self) -> int:
+        return os.getpid()
+
+    # ---- persistence ---------------------------------------------------------------------------
+    def _service_state(self) -> dict[str, Any]:
+        return {"last_iteration": self.last_iteration, "last_record": self.last_record, "progress": self.progress}
+
+    def save(self, directory: str) -> None:
+        """Bank + service counters into ``directory`` (the bank's own atomic format + a JSON file).
+
+        Policy weights are not part of it: they live in the learners' checkpoint files.
+        """
+        with self._lock:
+            path = Path(directory)
+            self.bank.save(str(path))
+            tmp = path / ".service.json.tmp"
+            tmp.write_text(json.dumps(self._service_state()))
+            os.replace(tmp, path / "service.json")
+
+    def load(self, directory: str, weights: dict[int, Any] | None = None) -> None:
+        """Restore bank + counters saved by :meth:`save` (and optionally policy weights)."""
+        with self._lock:
+            path = Path(directory)
+            self.bank = PolicyBank.load(str(path), feature_fn=self._feature_fn())
+            if self.cfg.runtime.method in SINGLE_POLICY_METHODS:
+                self.bank.max_policies = 1
+            service = path / "service.json"
+            if service.is_file():
+                state = json.loads(service.read_text())
+                self.last_iteration = int(state["last_iteration"])
+                self.last_record = state["last_record"]
+                self.progress = state.get("progress", {})
+            self.versions.clear()
+            for pid, w in (weights or {}).items():
+                self._sync_weights({int(pid): (-1, w)})
+            if not self.read_only and self.run_dir is not None and path != self.run_dir / LIVE_DIR:
+                self._persist()
+
+    def _persist(self) -> None:
+        if self.run_dir is None or self.read_only:
+            return
+        self.save(str(self.run_dir / LIVE_DIR))

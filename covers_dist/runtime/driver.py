@@ -1,0 +1,276 @@
+"""The driver: Algorithm 1 of COVERS as a loop of named, timed phases.
+
+Each iteration handles the next ``clustering.update_every`` (Nu) episodes of the task stream:
+
+1. ``sample``: the rollout workers run them with the current policy (the stream's true task and
+   symmetry pick the environment; the policy is not told);
+2. ``assign``: the clustering actor compares the episodes' first-k observations with every
+   policy's buffer and recalls a policy or creates a new one;
+3. ``update``: the assigned policy's learner runs PPO on the episodes (with the behaviour
+   log-probs stored in them);
+4. ``publish``: the new weights go to the object store with a new version; workers and the
+   clustering actor pull them only when the version changed.
+
+Checkpoints are written every ``runtime.checkpoint_every`` iterations and on SIGINT/SIGTERM;
+``resume=True`` continues from the newest valid checkpoint of the run directory.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+import torch
+import yaml
+
+from ..config import Config, config_to_dict, load_config
+from ..envs.stream import TaskStream
+from .checkpoint import latest_valid_checkpoint, write_checkpoint
+from .metrics import M, MetricsWriter, Progress
+from .rollout import EpisodeSpec
+
+__all__ = ["Trainer", "train"]
+
+SINGLE_POLICY_METHODS = ("equi", "cnn")
+
+
+class Trainer:
+    """Runs COVERS (or a baseline variant) on the serial or the Ray backend."""
+
+    def __init__(self, cfg: Config, resume: bool = False, log: Callable[[str], None] = print) -> None:
+        self.cfg = cfg
+        self.log = log
+        self.run_dir = Path(cfg.runtime.run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.stream = TaskStream(
+            list(cfg.env.tasks), cfg.env.group, cfg.env.episodes_per_task, cfg.env.held_out, cfg.seed
+        )
+        self.iteration = 0
+        self.next_episode = 0
+        self.env_steps = 0
+        self.current_policy = 0
+        self.weight_version = 0
+        self.versions: dict[int, int] = {}
+        self.handles: dict[int, Any] = {}
+        self.success: dict[str, float] = {}
+        self.returns: dict[str, float] = {}
+        self.phase_time: dict[str, float] = {}
+        self._stop = False
+        self._last_rows: list[dict[str, Any]] = []
+        self._resume_from: Path | None = None
+        if resume:
+            self._resume_from = latest_valid_checkpoint(self.run_dir, log=self.log)
+            if self._resume_from is None:
+                raise FileNotFoundError(f"no valid checkpoint to resume from in {self.run_dir}/checkpoints")
+        if cfg.runtime.serial:
+            from .backends import SerialBackend
+
+            self.backend: Any = SerialBackend(cfg, self.run_dir)
+        else:
+            from .backends import RayBackend
+
+            self.backend = RayBackend(cfg, self.run_dir)
+        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+
+    # ---- phases --------------------------------------------------------------------------------
+    @contextmanager
+    def _phase(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        yield
+        self.phase_time[name] = time.perf_counter() - t0
+
+    def _plan(self) -> list[list[EpisodeSpec]]:
+        nu = self.cfg.clustering.update_every
+        specs = []
+        for i in range(self.next_episode, self.next_episode + nu):
+            t = self.stream.task_at(i)
+            specs.append(EpisodeSpec(i, t.task, t.g.name, t.group_id))
+        n = self.cfg.runtime.num_workers
+        return [specs[w::n] for w in range(n)]
+
+    def _publish(self, policy_id: int, weights: Any) -> None:
+        self.weight_version += 1
+        self.versions[policy_id] = self.weight_version
+        self.handles[policy_id] = self.backend.publish(weights)
+
+    def _new_policy(self, policy_id: int) -> None:
+        self.backend.ensure_learner(policy_id)
+        _, weights = self.backend.call_learner(policy_id, "weights")
+        self._publish(policy_id, weights)
+
+    def step(self) -> dict[str, Any]:
+        """One iteration: sample -> assign -> update -> publish; returns the metrics row."""
+        cur = self.current_policy
+        with self._phase("sample"):
+            plan = self._plan()
+            firsts, summaries, episodes = self.backend.sample(plan, cur, self.versions[cur], self.handles[cur])
+            order = sorted(range(len(summaries)), key=lambda i: summaries[i]["episode_index"])
+            firsts = [firsts[i] for i in order]
+            summaries = [summaries[i] for i in order]
+        obs = {
+            "image": np.concatenate([f["image"] for f in firsts]),
+            "proprio": np.concatenate([f["proprio"] for f in firsts]),
+        }
+        indices = [s["episode_index"] for s in summaries]
+        groups = [s["group_id"] for s in summaries]
+        with self._phase("assign"):
+            weights_map = {pid: (self.versions[pid], self.handles[pid]) for pid in self.versions}
+            record = self.backend.call_clustering("assign", self.iteration, obs, indices, groups, weights_map)
+        chosen = int(record["policy_id"])
+        if chosen not in self.versions:
+            self._new_policy(chosen)
+        with self._phase("update"):
+            stats, _, weights = self.backend.call_learner(chosen, "update", episodes)
+        with self._phase("publish"):
+            self._publish(chosen, weights)
+            for s in summaries:
+                s["assigned_policy"] = chosen
+            self.backend.call_clustering("record_episodes", summaries)
+        self._last_rows = summaries
+        self.current_policy = chosen
+        self.next_episode += len(summaries)
+        self.env_steps += sum(s["length"] for s in summaries)
+        self.iteration += 1
+        for s in summaries:
+            self.success[s["task"]] = s["success"]
+            self.returns[s["task"]] = s["return"]
+        return self._row(record, stats, summaries)
+
+    def _row(self, record: dict[str, Any], stats: dict[str, Any], summaries: list[dict]) -> dict[str, Any]:
+        metrics = self.backend.call_clustering("metrics")
+        dists = [d for d in record.get("distances", {}).values() if d is not None]
+        row: dict[str, Any] = {
+            M.ITERATION: self.iteration,
+            M.EPISODES: self.next_episode,
+            M.ENV_STEPS: self.env_steps,
+            M.POLICY: self.current_policy,
+            M.NUM_POLICIES: metrics.get("num_policies", len(self.versions)),
+            M.ARI: metrics.get("ari", float("nan")),
+            M.NEW_POLICY: bool(record.get("new", False)),
+            M.DISTANCE_MIN: min(dists) if dists else float("nan"),
+            "wall_time": time.time(),
+        }
+        batch_success: dict[str, list[float]] = {}
+        batch_return: dict[str, list[float]] = {}
+        for s in summaries:
+            batch_success.setdefault(s["task"], []).append(s["success"])
+            batch_return.setdefault(s["task"], []).append(s["return"])
+        for task in batch_success:
+            row[f"{M.SUCCESS}/{task}"] = float(np.mean(batch_success[task]))
+            row[f"{M.RETURN}/{task}"] = float(np.mean(batch_return[task]))
+        for name, secs in self.phase_time.items():
+            row[f"{M.TIME}/{name}"] = secs
+        for key, value in stats.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                row[f"{M.LOSS}/{key}"] = value
+        return row
+
+    # ---- checkpoints ---------------------------------------------------------------------------
+    def _driver_state(self) -> dict[str, Any]:
+        return {
+            "iteration": self.iteration,
+            "next_episode": self.next_episode,
+            "env_steps": self.env_steps,
+            "current_policy": self.current_policy,
+            "weight_version": self.weight_version,
+            "policies": sorted(self.versions),
+            "stream": self.stream.state_dict(),
+            "numpy_rng": np.random.get_state()[1].tolist(),
+            "torch_rng": torch.get_rng_state().tolist(),
+        }
+
+    def checkpoint(self) -> Path:
+        def write(tmp: Path) -> None:
+            (tmp / "driver.json").write_text(json.dumps(self._driver_state()))
+            (tmp / "config.yaml").write_text(yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False))
+            self.backend.call_clustering("save", str(tmp / "bank"))
+            (tmp / "learners").mkdir()
+            for pid in sorted(self.versions):
+                torch.save(self.backend.call_learner(pid, "state_dict"), tmp / "learners" / f"policy-{pid}.pt")
+
+        return write_checkpoint(self.run_dir, self.iteration, write)
+
+    def _restore(self, path: Path) -> None:
+        state = json.loads((path / "driver.json").read_text())
+        self.iteration = state["iteration"]
+        self.next_episode = state["next_episode"]
+        self.env_steps = state["env_steps"]
+        self.current_policy = state["current_policy"]
+        self.weight_version = state["weight_version"]
+        self.stream.load_state_dict(state["stream"])
+        self.backend.call_clustering("load", str(path / "bank"))
+        for pid in state["policies"]:
+            self.backend.ensure_learner(pid)
+            learner_state = torch.load(path / "learners" / f"policy-{pid}.pt", weights_only=False)
+            self.backend.call_learner(pid, "load_state_dict", learner_state)
+            _, weights = self.backend.call_learner(pid, "weights")
+            self._publish(pid, weights)
+        self.log(f"resumed from {path} (iteration {self.iteration}, {self.env_steps} env steps)")
+
+    # ---- the loop ------------------------------------------------------------------------------
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        self.log(f"received signal {signum}: checkpointing after this iteration")
+        self._stop = True
+
+    def run(self) -> dict[str, Any]:
+        old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        writer = MetricsWriter(self.run_dir)
+        try:
+            if self._resume_from is not None:
+                self._restore(self._resume_from)
+            else:
+                self._new_policy(0)
+            progress = Progress(self.cfg.runtime.total_env_steps, self.cfg.runtime.log_every_s, self.env_steps)
+            row: dict[str, Any] = {}
+            while self.env_steps < self.cfg.runtime.total_env_steps and not self._stop:
+                row = self.step()
+                self.backend.call_clustering("report", row)
+                writer.scalars(row)
+                writer.episodes(self._last_episode_rows())
+                progress.maybe_print(row)
+                if self.iteration % self.cfg.runtime.checkpoint_every == 0:
+                    self.checkpoint()
+            path = self.checkpoint()
+            if row:
+                progress.maybe_print(row, force=True)
+            status = "interrupted" if self._stop else "finished"
+            self.log(f"{status}: checkpoint {path}; resume with: covers-dist train --resume {self.run_dir}")
+            return {"status": status, "row": row, "checkpoint": str(path), **self.backend.call_clustering("metrics")}
+        finally:
+            writer.close()
+            for s, h in old.items():
+                signal.signal(s, h)
+
+    def _last_episode_rows(self) -> list[dict[str, Any]]:
+        return [{**s, M.ENV_STEPS: self.env_steps, M.ITERATION: self.iteration} for s in self._last_rows]
+
+    def close(self) -> None:
+        self.backend.shutdown()
+
+
+def train(cfg: Config | None = None, resume_dir: str | None = None, log: Callable[[str], None] = print) -> dict:
+    """Run training to the end (or resume ``resume_dir``); starts Ray when the config asks for it."""
+    if resume_dir is not None:
+        cfg_path = Path(resume_dir) / "config.yaml"
+        if not cfg_path.is_file():
+            raise FileNotFoundError(f"{resume_dir} is not a run directory (no config.yaml)")
+        cfg = load_config(cfg_path)
+    assert cfg is not None
+    started = False
+    if not cfg.runtime.serial:
+        from .ray_setup import init_ray, shutdown_ray
+
+        init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address, cfg.runtime.num_gpus or None)
+        started = True
+    trainer = Trainer(cfg, resume=resume_dir is not None, log=log)
+    try:
+        return trainer.run()
+    finally:
+        trainer.close()
+        if started:
+            shutdown_ray()

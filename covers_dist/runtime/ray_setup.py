@@ -1,0 +1,61 @@
+"""Starting or joining Ray, loopback-only by default.
+
+A local Ray instance binds to the machine's network address unless
+``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` is set before Ray starts; with it, every Ray process
+binds and talks on 127.0.0.1 only. :func:`init_ray` sets it (unless the caller set it
+otherwise), gives the run its own temp dir, and never stops anything it did not start.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from typing import Any
+
+__all__ = ["init_ray", "shutdown_ray"]
+
+_STARTED_HERE = False
+
+
+def init_ray(num_cpus: int, address: str | None = None, num_gpus: float | None = None) -> Any:
+    """Connect to ``address`` or start a local, loopback-only Ray instance with ``num_cpus``."""
+    global _STARTED_HERE
+    import ray
+
+    if ray.is_initialized():
+        return ray
+    if address is None:
+        address = os.environ.get("RAY_ADDRESS") or None
+    if address:
+        ray.init(address=address, log_to_driver=True)
+        return ray
+    # only for an instance we start ourselves: a cluster's nodes must advertise their real address
+    # (read by Ray at import time, so also set on the already-imported constants module; the
+    # processes Ray spawns inherit the variable)
+    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+    if os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] == "0":
+        from ray._private import ray_constants
+
+        ray_constants.ENABLE_RAY_CLUSTER = False
+    tmp = tempfile.mkdtemp(prefix="covers-ray-")
+    ray.init(
+        num_cpus=num_cpus,
+        num_gpus=num_gpus,
+        include_dashboard=False,
+        _temp_dir=tmp,
+        _node_ip_address="127.0.0.1",
+        configure_logging=True,
+        logging_level="WARNING",
+    )
+    _STARTED_HERE = True
+    return ray
+
+
+def shutdown_ray() -> None:
+    """Shut down Ray if this process started it (a cluster we joined is left running)."""
+    global _STARTED_HERE
+    import ray
+
+    if ray.is_initialized() and _STARTED_HERE:
+        ray.shutdown()
+        _STARTED_HERE = False

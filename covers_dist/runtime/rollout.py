@@ -1,0 +1,170 @@
+"""The rollout worker: steps several transformed tasks at once with one policy's weights.
+
+A plain class (no Ray): :mod:`covers_dist.runtime.actors` turns it into a Ray actor, serial mode
+uses it directly. A worker is told which (task, g) each episode runs in and which policy's
+weights to use; it never tells the policy which task it is in. Episodes are seeded from their
+global index, so a retried call (after a worker restart) returns exactly the same episodes.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..config import Config
+from ..envs import make_task, suite_layout
+from ..models import build_actor_critic
+from ..symmetry import GroupElement
+
+__all__ = ["EpisodeSpec", "RolloutWorker", "episode_seed"]
+
+
+@dataclass(frozen=True)
+class EpisodeSpec:
+    """What one episode runs in. ``group_id`` is for metrics only; the policy never sees it."""
+
+    episode_index: int
+    task: str
+    g: str
+    group_id: int
+
+
+def episode_seed(base_seed: int, episode_index: int) -> int:
+    """The seed of an episode: a pure function of the run seed and the episode's global index."""
+    return int(np.random.SeedSequence([base_seed, episode_index]).generate_state(1)[0])
+
+
+class RolloutWorker:
+    """Runs batches of episodes with ``envs_per_worker`` environments stepped together."""
+
+    def __init__(self, cfg: Config, worker_index: int = 0, max_cached_envs: int = 16) -> None:
+        torch.set_num_threads(cfg.runtime.torch_threads)
+        self.cfg = cfg
+        self.worker_index = worker_index
+        self.layout = suite_layout(cfg.env.suite, cfg.env.image_size)
+        self.model = build_actor_critic(cfg.network, self.layout)
+        self.model.eval()
+        self._loaded: tuple[int, int] | None = None  # (policy id, version) of the loaded weights
+        self._envs: OrderedDict[tuple[str, str, int], Any] = OrderedDict()
+        self._max_cached_envs = max_cached_envs
+        self.weight_pulls = 0
+        self.env_steps = 0
+
+    # ---- weights -----------------------------------------------------------------------------
+    def _ensure_weights(self, policy_id: int, version: int, weights: Any) -> None:
+        if self._loaded == (policy_id, version):
+            return
+        if isinstance(weights, list):  # an object reference wrapped so that Ray does not resolve it eagerly
+            import ray
+
+            weights = ray.get(weights[0])
+        self.model.set_weights(weights)
+        self.model.eval()
+        self._loaded = (policy_id, version)
+        self.weight_pulls += 1
+
+    # ---- environments -------------------------------------------------------------------------
+    def _env(self, task: str, g: str, slot: int) -> Any:
+        key = (task, g, slot)
+        env = self._envs.get(key)
+        if env is None:
+            env = make_task(self.cfg.env, task, GroupElement.from_name(g))
+            self._envs[key] = env
+            while len(self._envs) > self._max_cached_envs:
+                _, old = self._envs.popitem(last=False)
+                old.close()
+        else:
+            self._envs.move_to_end(key)
+        return env
+
+    def close(self) -> None:
+        for env in self._envs.values():
+            env.close()
+        self._envs.clear()
+
+    # ---- sampling -----------------------------------------------------------------------------
+    def sample(
+        self,
+        specs: list[EpisodeSpec],
+        policy_id: int,
+        version: int,
+        weights: Any = None,
+        deterministic: bool = False,
+    ) -> list[dict[str, Any]]:
+        """Run one full episode per spec with the given policy; returns Episode dicts."""
+        self._ensure_weights(policy_id, version, weights)
+        episodes: list[dict[str, Any]] = []
+        width = self.cfg.runtime.envs_per_worker
+        for start in range(0, len(specs), width):
+            episodes.extend(self._run_group(specs[start : start + width], policy_id, version, deterministic))
+        return episodes
+
+    def _run_group(
+        self, specs: list[EpisodeSpec], policy_id: int, version: int, deterministic: bool
+    ) -> list[dict[str, Any]]:
+        n = len(specs)
+        envs = [self._env(s.task, s.g, slot) for slot, s in enumerate(specs)]
+        gen = torch.Generator().manual_seed(episode_seed(self.cfg.seed, specs[0].episode_index) % (2**63))
+        traj: list[dict[str, list]] = []
+        obs_now = []
+        for env, spec in zip(envs, specs):
+            obs, _ = env.reset(seed=episode_seed(self.cfg.seed, spec.episode_index))
+            obs_now.append(obs)
+            traj.append({k: [] for k in ("image", "proprio", "action", "logprob", "value", "reward", "success")})
+        done = [False] * n
+        ended = [(False, False)] * n
+        while not all(done):
+            live = [i for i in range(n) if not done[i]]
+            batch = {
+                "image": np.stack([obs_now[i]["image"] for i in live]),
+                "proprio": np.stack([obs_now[i]["proprio"] for i in live]),
+            }
+            actions, logps, values = self.model.act(batch, deterministic=deterministic, generator=gen)
+            for j, i in enumerate(live):
+                t = traj[i]
+                t["image"].append(obs_now[i]["image"])
+                t["proprio"].append(obs_now[i]["proprio"])
+                t["action"].append(actions[j])
+                t["logprob"].append(logps[j])
+                t["value"].append(values[j])
+                obs, reward, terminated, truncated, info = envs[i].step(actions[j])
+                t["reward"].append(reward)
+                t["success"].append(float(info.get("success", 0.0)))
+                obs_now[i] = obs
+                self.env_steps += 1
+                if terminated or truncated:
+                    done[i] = True
+                    ended[i] = (bool(terminated), bool(truncated))
+        # bootstrap values of the final observations (used only for truncated episodes)
+        final = {"image": np.stack([o["image"] for o in obs_now]), "proprio": np.stack([o["proprio"] for o in obs_now])}
+        _, _, final_values = self.model.act(final, deterministic=True)
+        out = []
+        for i, spec in enumerate(specs):
+            t = traj[i]
+            out.append(
+                {
+                    "image": np.stack(t["image"] + [obs_now[i]["image"]]).astype(np.uint8),
+                    "proprio": np.stack(t["proprio"] + [obs_now[i]["proprio"]]).astype(np.float32),
+                    "action": np.asarray(t["action"], dtype=np.float32),
+                    "logprob": np.asarray(t["logprob"], dtype=np.float32),
+                    "value": np.asarray(t["value"] + [final_values[i]], dtype=np.float32),
+                    "reward": np.asarray(t["reward"], dtype=np.float32),
+                    "success": np.asarray(t["success"], dtype=np.float32),
+                    "terminated": ended[i][0],
+                    "truncated": ended[i][1],
+                    "task": spec.task,
+                    "g": spec.g,
+                    "group_id": spec.group_id,
+                    "episode_index": spec.episode_index,
+                    "policy_id": policy_id,
+                    "policy_version": version,
+                }
+            )
+        return out
+
+    def stats(self) -> dict[str, int]:
+        return {"worker_index": self.worker_index, "env_steps": self.env_steps, "weight_pulls": self.weight_pulls}
