@@ -5,3 +5,15 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def ray_local():
+    """One loopback-only Ray instance (2 CPUs) shared by every test that needs Ray."""
+    from covers_dist.runtime.ray_setup import init_ray, shutdown_ray
+
+    ray = init_ray(num_cpus=2)
+    yield ray
+    shutdown_ray()

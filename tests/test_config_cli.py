@@ -38,7 +38,7 @@ def test_overrides_parse_values_as_yaml():
         ({"env": {"image_size": 40}}, r"env.image_size=40 must be divisible by 2\*\*len\(network.channels\)"),
         ({"env": {"group": "D4"}, "network": {"group": "C4"}}, r"network.group=C4 does not contain env.group=D4"),
         ({"runtime": {"method": "cnn"}}, r"runtime.method=cnn needs network.kind=cnn"),
-        ({"ppo": {"minibatch_size": 1000}, "runtime": {"steps_per_update": 100}}, r"ppo.minibatch_size=1000 exceeds"),
+        ({"ppo": {"minibatch_size": 1000}, "clustering": {"update_every": 2}}, r"ppo.minibatch_size=1000 exceeds"),
         ({"env": {"tasks": ["reach", "reach"]}}, r"duplicate task names"),
         ({"ppo": []}, r"ppo: expected a mapping"),
     ],

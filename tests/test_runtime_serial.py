@@ -1,0 +1,98 @@
+"""The COVERS loop in one process: phases, checkpoints, resume, determinism."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from covers_dist.config import load_config
+from covers_dist.runtime.checkpoint import CheckpointError, latest_valid_checkpoint, list_checkpoints, verify_checkpoint
+from covers_dist.runtime.driver import Trainer
+
+TINY = [
+    "runtime.serial=true",
+    "runtime.num_workers=2",
+    "runtime.envs_per_worker=4",
+    "env.episodes_per_task=8",
+    "clustering.update_every=8",
+    "ppo.epochs=1",
+    "ppo.minibatch_size=200",
+    "runtime.log_every_s=1000",
+]
+
+
+def tiny_cfg(tmp_path, *extra):
+    return load_config("configs/smoke.yaml", [*TINY, f"runtime.run_dir={tmp_path}", *extra])
+
+
+def assignments(trainer):
+    return [(r["policy_id"], r["decision"]) for r in trainer.backend.call_clustering("assignments", 0, 1000)]
+
+
+def test_serial_loop_runs_phases_and_writes_metrics(tmp_path):
+    cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=1600", "runtime.checkpoint_every=2")
+    trainer = Trainer(cfg, log=lambda *_: None)
+    result = trainer.run()
+    trainer.close()
+    assert result["status"] == "finished"
+    rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3, 4]
+    assert rows[-1]["env_steps"] == 1600
+    for phase in ("sample", "assign", "update", "publish"):
+        assert rows[-1][f"time/{phase}"] > 0
+    episodes = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
+    assert [e["episode_index"] for e in episodes] == list(range(32))
+    assert (tmp_path / "tb").is_dir()
+    verify_checkpoint(list_checkpoints(tmp_path)[-1])
+
+
+def test_same_seed_same_assignments_and_losses(tmp_path):
+    runs = []
+    for name in ("a", "b"):
+        cfg = tiny_cfg(tmp_path / name, "runtime.total_env_steps=1200")
+        trainer = Trainer(cfg, log=lambda *_: None)
+        trainer.run()
+        trainer.close()
+        rows = [json.loads(line) for line in (tmp_path / name / "metrics.jsonl").read_text().splitlines()]
+        runs.append((assignments(trainer), [r["ppo/policy_loss"] for r in rows], [r["return/" + t] for r in rows for t in ["reach", "push", "avoid"] if "return/" + t in r]))
+    assert runs[0] == runs[1]
+
+
+def test_resume_continues_with_the_same_bank_and_counters(tmp_path):
+    cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=800", "runtime.checkpoint_every=100")
+    first = Trainer(cfg, log=lambda *_: None)
+    first.run()
+    bank_before = assignments(first)
+    first.close()
+    cfg2 = tiny_cfg(tmp_path, "runtime.total_env_steps=1600", "runtime.checkpoint_every=100")
+    second = Trainer(cfg2, resume=True, log=lambda *_: None)
+    assert second.iteration == 0  # restored on run()
+    second.run()
+    assert second.iteration == 4 and second.next_episode == 32 and second.env_steps == 1600
+    after = assignments(second)
+    assert after[: len(bank_before)] == bank_before and len(after) == 4
+    second.close()
+
+
+def test_corrupt_newest_checkpoint_falls_back_to_previous(tmp_path):
+    cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=1200", "runtime.checkpoint_every=1")
+    t = Trainer(cfg, log=lambda *_: None)
+    t.run()
+    t.close()
+    ckpts = list_checkpoints(tmp_path)
+    assert len(ckpts) >= 2
+    newest = ckpts[-1]
+    (newest / "driver.json").write_text("{garbage")
+    with pytest.raises(CheckpointError, match="driver.json is corrupt"):
+        verify_checkpoint(newest)
+    messages = []
+    assert latest_valid_checkpoint(tmp_path, log=messages.append) == ckpts[-2]
+    assert "falling back to the previous checkpoint" in messages[0]
+    shutil.rmtree(ckpts[-2] / "learners")
+    assert latest_valid_checkpoint(tmp_path, log=messages.append) == ckpts[-3]
+
+
+def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no valid checkpoint"):
+        Trainer(tiny_cfg(tmp_path), resume=True)
