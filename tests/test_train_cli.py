@@ -72,23 +72,32 @@ def _free_port():
 
 @pytest.mark.slow
 def test_ray_job_submit_against_a_local_head(tmp_path):
+    import secrets
+
     bindir = Path(sys.executable).parent
     temp = Path("/tmp") / f"covers-head-{os.getpid()}"
+    token = tmp_path / "auth_token"  # Ray's token authentication, with a token of this test's own
+    token.write_text(secrets.token_hex(32))
+    env = {**_env(), "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN_PATH": str(token)}
     port, dash = _free_port(), _free_port()
     head = subprocess.run(
         [str(bindir / "ray"), "start", "--head", "--num-cpus", "2", "--node-ip-address=127.0.0.1",
          f"--port={port}", f"--dashboard-port={dash}", "--dashboard-host=127.0.0.1", "--include-dashboard=true",
          f"--temp-dir={temp}", "--disable-usage-stats"],
-        env=_env(), capture_output=True, text=True, timeout=120,
+        env=env, capture_output=True, text=True, timeout=120,
     )
     assert head.returncode == 0, head.stdout + head.stderr
     try:
-        job = subprocess.run(
-            [str(bindir / "ray"), "job", "submit", "--address", f"http://127.0.0.1:{dash}", "--working-dir", ".",
-             "--", "covers-dist", "train", "--config", "configs/smoke.yaml", "--run-dir", str(tmp_path / "job"),
-             *SMALL, "--set", "runtime.total_env_steps=1200"],
-            cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=900,
-        )
+        for attempt in range(20):  # the head's job agent needs a few seconds after `ray start`
+            job = subprocess.run(
+                [str(bindir / "ray"), "job", "submit", "--address", f"http://127.0.0.1:{dash}", "--working-dir", ".",
+                 "--", "covers-dist", "train", "--config", "configs/smoke.yaml", "--run-dir", str(tmp_path / "job"),
+                 *SMALL, "--set", "runtime.total_env_steps=1200"],
+                cwd=ROOT, env=env, capture_output=True, text=True, timeout=900,
+            )
+            if "No available agent" not in job.stderr + job.stdout:
+                break
+            time.sleep(3)
         print(job.stdout[-3000:])
         assert job.returncode == 0, job.stdout[-5000:] + job.stderr[-3000:]
         assert "succeeded" in job.stdout and "steps/s" in job.stdout and "finished" in job.stdout

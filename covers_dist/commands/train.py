@@ -40,5 +40,6 @@ def run(args: argparse.Namespace) -> int:
         if args.run_dir:
             args.overrides.append(f"runtime.run_dir={args.run_dir}")
         result = train(config_from_args(args))
-    print(json.dumps({k: v for k, v in result.items() if k != "row"}, default=str))
+    keys = ("status", "checkpoint", "ari", "num_policies", "policy_counts")
+    print(json.dumps({k: result.get(k) for k in keys}, default=str))
     return 0
