@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from covers_dist.cli import main
-from covers_dist.config import Config, ConfigError, config_from_dict, describe, load_config
+from covers_dist.config import DEFAULT_THRESHOLDS, Config, ConfigError, config_from_dict, describe, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -20,7 +20,7 @@ def test_defaults_and_every_shipped_config_load():
 def test_overrides_parse_values_as_yaml():
     cfg = load_config(ROOT / "configs/smoke.yaml", ["ppo.lr=1e-4", "env.tasks=[reach, push]", "ppo.target_kl=null"])
     assert cfg.ppo.lr == 1e-4 and cfg.env.tasks == ["reach", "push"] and cfg.ppo.target_kl is None
-    assert load_config(None, ["clustering.metric=euclidean"]).threshold == 0.5
+    assert load_config(None, ["clustering.metric=euclidean"]).threshold == DEFAULT_THRESHOLDS["euclidean"]
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,229 @@
+"""The Meta-World suite: exact equivalence of g.T and T, observations, seeding, errors, checker."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from covers_dist.config import EnvConfig
+from covers_dist.envs import make_task, suite_layout, task_names, transform_obs
+from covers_dist.envs.metaworld_suite import (
+    DISC_RADIUS,
+    SYMMETRY_CENTRE,
+    TASKS,
+    MetaWorldTask,
+    metaworld_layout,
+    register_metaworld_envs,
+    register_task,
+)
+from covers_dist.envs.topdown_view import DISC_COLOR
+from covers_dist.symmetry import D4_ELEMENTS, GroupElement
+
+BASE_TASKS = ("reach-v3", "button-press-topdown-v3", "drawer-close-v3", "plate-slide-v3")
+STEPS = 90  # long enough for the scripted expert to solve every task (drawer: about 80)
+SEED = 7
+
+
+def _scripted_actions(env: MetaWorldTask, steps: int, seed: int):
+    """Base-frame trajectory: Meta-World's expert plus seeded noise; records what the agent saw."""
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    record = {"obs": [obs], "action": [], "reward": [], "success": [], "trunc": []}
+    for _ in range(steps):
+        a = np.clip(env.expert_action() + rng.normal(0.0, 0.2, size=4), -1, 1).astype(np.float32)
+        obs, r, term, trunc, info = env.step(a)
+        assert term is False
+        for k, v in (("obs", obs), ("action", a), ("reward", r), ("success", info["success"]), ("trunc", trunc)):
+            record[k].append(v)
+    return record
+
+
+@pytest.fixture(scope="module")
+def base_runs():
+    runs = {}
+    for task in BASE_TASKS:
+        env = MetaWorldTask(task, "e", max_episode_steps=STEPS)
+        runs[task] = _scripted_actions(env, STEPS, SEED)
+        env.close()
+    return runs
+
+
+@pytest.mark.parametrize("task", BASE_TASKS)
+def test_transformed_tasks_are_exactly_equivalent(task, base_runs):
+    """For every g: images pixel-equal to g(base image), proprio g-transformed, same rewards/success."""
+    run = base_runs[task]
+    layout = metaworld_layout(64)
+    assert max(run["success"]) == 1.0, "the scripted trajectory should solve the task"
+    for g in D4_ELEMENTS:
+        env = MetaWorldTask(task, g, max_episode_steps=STEPS)
+        obs, _ = env.reset(seed=SEED)
+        for t in range(STEPS + 1):
+            expected = transform_obs(layout, g, run["obs"][t])
+            assert np.array_equal(obs["image"], expected["image"]), f"{task} {g.name} step {t}: image differs"
+            np.testing.assert_array_equal(obs["proprio"], expected["proprio"])
+            if t == STEPS:
+                break
+            obs, r, term, trunc, info = env.step(layout.transform_action(g, run["action"][t]))
+            assert r == run["reward"][t] and info["success"] == run["success"][t] and trunc == run["trunc"][t]
+        assert trunc, "the episode must be truncated at max_episode_steps"
+        env.close()
+
+
+@pytest.mark.parametrize("task", BASE_TASKS)
+def test_transforms_give_visibly_different_tasks(task, base_runs):
+    image = base_runs[task]["obs"][10]["image"]
+    images = [g.apply_image(image) for g in D4_ELEMENTS]
+    for i in range(8):
+        for j in range(i):
+            assert not np.array_equal(images[i], images[j]), (task, D4_ELEMENTS[i], D4_ELEMENTS[j])
+
+
+def test_task_groups_look_different(base_runs):
+    colours = {t: {tuple(c) for c in run["obs"][0]["image"].reshape(-1, 3)} for t, run in base_runs.items()}
+    for a in BASE_TASKS:
+        for b in BASE_TASKS:
+            if a < b:
+                assert colours[a] != colours[b]
+
+
+def _blue_centroid(image: np.ndarray) -> np.ndarray:
+    rows, cols = np.nonzero(np.all(image == DISC_COLOR, axis=-1))
+    assert len(rows) >= 9, "the gripper disc should be visible"
+    return np.array([cols.mean(), rows.mean()])
+
+
+@pytest.mark.parametrize("g", [GroupElement.from_name(n) for n in ("e", "r", "r2f", "r3f")], ids=lambda g: g.name)
+def test_blue_disc_follows_the_gripper(g):
+    env = MetaWorldTask("reach-v3", g)
+    obs, _ = env.reset(seed=3)
+    size = env.image_size
+    centre_px = (size - 1) / 2.0
+    moves = [np.array([0.8, 0.4, 0.0, 0.0], np.float32)] * 20 + [np.array([-0.6, -1.0, 0.0, 0.0], np.float32)] * 20
+    moved = 0.0
+    for move in moves:
+        hand = env.task_state()["hand"]  # gripper position relative to the symmetry centre, seen through g
+        expected = np.array([centre_px + hand[0] / env.view.pitch, centre_px - hand[1] / env.view.pitch])
+        np.testing.assert_allclose(_blue_centroid(obs["image"]), expected, atol=0.5)
+        np.testing.assert_allclose(obs["proprio"][:2], hand[:2], atol=0.02)  # hand body vs gripper centre
+        moved = max(moved, float(np.hypot(*hand[:2])))
+        obs = env.step(move)[0]
+    assert moved > 0.1
+    env.close()
+
+
+def test_proprio_layout_and_contents():
+    env = MetaWorldTask("drawer-close-v3", "r")
+    obs, info = env.reset(seed=1)
+    assert obs["image"].shape == (64, 64, 3) and obs["image"].dtype == np.uint8
+    assert obs["proprio"].shape == (4,) and obs["proprio"].dtype == np.float32
+    assert info == {"success": 0.0}
+    mw = env.unwrapped_metaworld
+    hand = mw.get_endeff_pos()
+    base = np.array([hand[0] - SYMMETRY_CENTRE[0], hand[1] - SYMMETRY_CENTRE[1]])
+    np.testing.assert_allclose(obs["proprio"][:2], GroupElement.from_name("r").apply_vectors(base), atol=1e-6)
+    np.testing.assert_allclose(obs["proprio"][2], hand[2], atol=1e-6)
+    assert 0.0 <= obs["proprio"][3] <= 1.0
+    assert np.array_equal(obs["image"], GroupElement.from_name("r").apply_image(env.render_base()))
+    state = env.task_state()
+    assert set(state) == {"hand", "object", "goal", "hand_base", "object_base", "goal_base"}
+    assert env.layout == metaworld_layout(64) == suite_layout("metaworld", 64)
+    env.close()
+
+
+def test_placement_is_seeded():
+    env = MetaWorldTask("reach-v3")
+    goals = []
+    for seed in (5, 5, 6):
+        obs, _ = env.reset(seed=seed)
+        goals.append((env.task_state()["goal"].copy(), env.task_state()["object"].copy(), obs["image"].copy()))
+    assert np.array_equal(goals[0][0], goals[1][0]) and np.array_equal(goals[0][2], goals[1][2])
+    assert not np.array_equal(goals[0][0], goals[2][0])
+    low, high = env.unwrapped_metaworld._random_reset_space.low, env.unwrapped_metaworld._random_reset_space.high
+    goal_world = goals[2][0] + np.array([*SYMMETRY_CENTRE, 0.0])
+    assert np.all(goal_world >= low[3:] - 1e-9) and np.all(goal_world <= high[3:] + 1e-9)
+    # consecutive unseeded resets draw new placements from the same stream
+    env.reset(seed=9)
+    first = env.task_state()["goal"].copy()
+    env.reset()
+    assert not np.array_equal(first, env.task_state()["goal"])
+    env.close()
+
+
+def test_make_task_and_registry():
+    assert set(BASE_TASKS) <= set(task_names("metaworld"))
+    cfg = EnvConfig(suite="metaworld", tasks=list(BASE_TASKS), image_size=32, max_episode_steps=5)
+    env = make_task(cfg, "plate-slide-v3", "rf", seed=0)
+    assert isinstance(env, MetaWorldTask) and env.g.name == "rf" and env.image_size == 32
+    for _ in range(5):
+        _, _, _, trunc, _ = env.step(env.action_space.sample())
+    assert trunc
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(np.zeros(4, dtype=np.float32))
+    env.close()
+    assert TASKS["reach-v3"].label == "Goal Reach"
+    spec = register_task("push-v3", "Push")
+    try:
+        assert "push-v3" in task_names("metaworld")
+        extra = MetaWorldTask("push-v3", "f", image_size=32)
+        extra.reset(seed=0)
+        extra.step(extra.expert_action())
+        extra.close()
+    finally:
+        TASKS.pop(spec.name)
+
+
+def test_bad_input_gives_clear_errors():
+    cfg = EnvConfig(suite="metaworld", tasks=["reach-v3"], image_size=64)
+    with pytest.raises(ValueError, match="unknown metaworld task 'reach-v9'"):
+        make_task(cfg, "reach-v9")
+    with pytest.raises(ValueError, match="unknown Meta-World task"):
+        MetaWorldTask("pick-and-teleport")
+    with pytest.raises(ValueError, match="unknown Meta-World v3 environment"):
+        register_task("not-a-task-v3")
+    for size in (16, 31, 129, 256):
+        with pytest.raises(ValueError, match="image_size"):
+            MetaWorldTask("reach-v3", image_size=size)
+    with pytest.raises(TypeError, match="image_size"):
+        MetaWorldTask("reach-v3", image_size=64.0)
+    with pytest.raises(ValueError, match="render_backend"):
+        MetaWorldTask("reach-v3", render_backend="vulkan")
+    with pytest.raises(ValueError, match="unknown D4 element"):
+        MetaWorldTask("reach-v3", "r5")
+    with pytest.raises(ValueError, match="camera_shift"):
+        MetaWorldTask("reach-v3", camera_shift=-0.1)
+    env = MetaWorldTask("reach-v3", image_size=32)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros(4, dtype=np.float32))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="4 finite numbers"):
+        env.step(np.zeros(3, dtype=np.float32))
+    with pytest.raises(ValueError, match="4 finite numbers"):
+        env.step(np.array([np.nan, 0, 0, 0], dtype=np.float32))
+    env.close()
+
+
+def test_gymnasium_env_checker():
+    ids = register_metaworld_envs()
+    env = gym.make(ids["button-press-topdown-v3"], g="r3", image_size=32, render_mode="rgb_array")
+    check_env(env.unwrapped)
+    frame = env.unwrapped.render()
+    assert frame.shape == (32, 32, 3) and frame.dtype == np.uint8
+    env.close()
+
+
+def test_camera_shift_moves_the_view_not_the_robot():
+    pitch = 2 * 0.36 / 64
+    plain = MetaWorldTask("button-press-topdown-v3")
+    shifted = MetaWorldTask("button-press-topdown-v3", camera_shift=3 * pitch, camera_shift_angle=0.0)
+    a, _ = plain.reset(seed=2)
+    b, _ = shifted.reset(seed=2)
+    np.testing.assert_array_equal(a["proprio"], b["proprio"])
+    # the camera moved 3 pixels to +x: the scene moves 3 columns to the left
+    same = np.all(a["image"][:, 3:] == b["image"][:, :-3], axis=-1).mean()
+    assert same > 0.99 and not np.array_equal(a["image"], b["image"])
+    plain.close()
+    shifted.close()
+
+
+def test_disc_radius_is_about_three_pixels_at_64():
+    assert 2.0 < DISC_RADIUS / (2 * 0.36 / 64) < 4.0
