@@ -50,8 +50,11 @@ def _f(default: Any, doc: str, **kw: Any) -> Any:
 Metric = Literal["wasserstein", "euclidean", "mahalanobis"]
 GroupName = Literal["D4", "C4", "D2", "C2", "D1", "trivial"]
 
-#: Per-metric default thresholds d_eps (paper: W1 1.0; Euclidean 0.3-0.7; Mahalanobis 3-7).
-DEFAULT_THRESHOLDS: dict[str, float] = {"wasserstein": 1.0, "euclidean": 0.5, "mahalanobis": 5.0}
+#: Per-metric default thresholds d_eps, in units of the buffer's feature spread (clustering.feature_norm
+#: "buffer"; the Mahalanobis distance is scale-free). Paper (raw trained features): W1 1.0, Euclidean
+#: 0.3-0.7, Mahalanobis 3-7; these values sit in the measured gap between same-group and other-group
+#: distances on the toy stream (docs/clustering.md).
+DEFAULT_THRESHOLDS: dict[str, float] = {"wasserstein": 1.0, "euclidean": 0.8, "mahalanobis": 10.0}
 
 
 @dataclass(frozen=True)
@@ -67,18 +70,44 @@ class EnvConfig:
     episodes_per_task: int = _f(20, "Episodes before the stream switches to the next task.", min=1)
     held_out: int = _f(0, "Number of (group, g) pairs held out of training for generalization tests.", min=0)
     render_backend: Literal["auto", "egl", "osmesa", "numpy"] = _f(
-        "auto", "Meta-World renderer backend (auto picks a working one)."
+        "auto",
+        "Meta-World image renderer: numpy (MuJoCo geometry rasterized top-down, no OpenGL; what auto "
+        "picks) or MuJoCo's GL renderer on the egl / osmesa platform (MUJOCO_GL must match).",
     )
     camera_shift: float = _f(0.0, "Camera xy shift dp in metres (robustness evaluation).", min=0.0)
+    camera_shift_angle: float = _f(0.0, "Direction of the camera shift, degrees counter-clockwise from +x.")
+
+    def __post_init__(self) -> None:
+        from .symmetry import get_group
+
+        if self.suite == "metaworld" and not 32 <= self.image_size <= 128:
+            raise ConfigError(f"env.image_size={self.image_size}: Meta-World images must be 32..128 px")
+        trainable = len(self.tasks) * (len(get_group(self.group)) - 1)
+        if self.held_out > trainable:
+            raise ConfigError(
+                f"env.held_out={self.held_out} exceeds {trainable}: every task group must keep at least one "
+                f"trained (task, g) pair ({len(self.tasks)} tasks x {len(get_group(self.group))} elements of "
+                f"{self.group})"
+            )
 
 
 @dataclass(frozen=True)
 class NetworkConfig:
     kind: Literal["equivariant", "cnn"] = _f("equivariant", "Feature extractor: escnn equivariant or plain CNN.")
     group: GroupName = _f("D4", "Group the equivariant encoder is built for.")
-    channels: list[int] = _f([8, 16, 16, 32], "Regular fields per conv block (CNN twin: matched channels).")
-    hidden: int = _f(64, "Width of the invariant/equivariant head layer.", min=1)
+    channels: list[int] = _f(
+        [2, 4, 8, 16],
+        "Regular fields per conv block; each block halves the image (CNN twin: channels scaled by cnn_width).",
+    )
+    hidden: int = _f(
+        32, "Regular fields of the fused head layer; its group pooling gives the `hidden` invariant features.", min=1
+    )
     init_log_std: float = _f(-0.5, "Initial log standard deviation of the Gaussian policy.")
+    cnn_width: float | None = _f(
+        None,
+        "CNN twin channels = round(channels[i] * cnn_width); null: sqrt(|group|), a similar parameter count.",
+        gt=0.0,
+    )
 
 
 @dataclass(frozen=True)
@@ -97,20 +126,31 @@ class PPOConfig:
     target_kl: float | None = _f(None, "Stop the epochs early once approx-KL exceeds this (null: never).")
     norm_adv: bool = _f(True, "Normalize advantages per minibatch.")
     total_updates: int = _f(1000, "Horizon of the linear learning-rate schedule, in updates.", min=1)
+    reward_scale: float = _f(
+        0.1,
+        "Rewards are multiplied by this before GAE, so value targets stay O(1) (toy: about -0.5 per step; "
+        "Meta-World: 0..10 per step, try 0.01).",
+        gt=0.0,
+    )
 
 
 @dataclass(frozen=True)
 class ClusteringConfig:
     metric: Metric = _f("wasserstein", "Distance between initial-frame feature sets.")
-    threshold: float | None = _f(None, "d_eps; null picks the metric's default (W1 1.0, Euclid 0.5, Mahal 5.0).")
+    threshold: float | None = _f(None, "d_eps; null picks the metric's default (W1 1.0, Euclid 0.8, Mahal 10.0).")
     buffer_size: int = _f(128, "Initial observations kept per policy buffer B_i.", min=1)
     replacement: Literal["fifo", "reservoir"] = _f("reservoir", "How a full buffer admits new observations.")
     initial_frames: int = _f(1, "k: first frames of each episode used for clustering.", min=1)
-    update_every: int = _f(4, "Nu: episodes between assignment + PPO update steps.", min=1)
+    update_every: int = _f(8, "Nu: episodes per iteration (rolled out, assigned together, then one PPO update).", min=1)
     feature_source: Literal["own", "shared"] = _f(
         "own", "Features from each policy's own encoder, or one frozen shared encoder."
     )
     max_policies: int = _f(64, "Bank size limit; when reached, the nearest policy is recalled.", min=1)
+    feature_norm: Literal["buffer", "none", "l2"] = _f(
+        "buffer",
+        "Feature scaling before distances: buffer = O and B divided by B's mean pairwise feature distance "
+        "(scale-free; d_eps in units of the buffer's spread), none = raw features, l2 = unit-length rows.",
+    )
 
 
 @dataclass(frozen=True)
@@ -119,7 +159,6 @@ class RuntimeConfig:
     serial: bool = _f(False, "Run every component in one process (no Ray).")
     num_workers: int = _f(2, "Rollout worker actors.", min=1)
     envs_per_worker: int = _f(2, "Environments stepped together in each worker.", min=1)
-    steps_per_update: int = _f(400, "Ns: env steps collected per update step.", min=1)
     total_env_steps: int = _f(20000, "Stop after this many env steps.", min=1)
     num_cpus: int = _f(2, "CPUs for a locally started Ray instance.", min=1)
     num_gpus: float = _f(0.0, "GPUs per learner actor (0: CPU learners).", min=0.0)
@@ -136,7 +175,11 @@ class ApiConfig:
     host: str = _f("127.0.0.1", "Bind address (loopback unless configured).")
     port: int = _f(8000, "TCP port.", min=0, max=65535)
     token: str | None = _f(None, "Bearer token required on every route but health checks (or COVERS_API_TOKEN).")
-    max_body_bytes: int = _f(8_000_000, "Largest accepted request body.", min=1)
+    max_body_bytes: int = _f(8_000_000, "Largest accepted request body in bytes (larger: 413).", min=1)
+    max_batch: int = _f(256, "Most observations in one POST /v1/assign request.", min=1)
+    refresh_s: float = _f(0.5, "Seconds between snapshots of the clustering state that the GET endpoints serve.", gt=0.0)
+    request_timeout_s: float = _f(30.0, "Seconds to wait for the clustering service before answering 503.", gt=0.0)
+    compute_concurrency: int = _f(2, "POST /v1/assign and /v1/act calls in flight at once (others wait).", min=1)
 
 
 @dataclass(frozen=True)
@@ -192,10 +235,11 @@ def _validate_cross_fields(cfg: Config) -> None:
         raise ConfigError(
             f"runtime.method={cfg.runtime.method} needs network.kind=equivariant, got {cfg.network.kind}"
         )
-    if cfg.ppo.minibatch_size > cfg.runtime.steps_per_update:
+    steps_per_update = cfg.clustering.update_every * cfg.env.max_episode_steps
+    if cfg.ppo.minibatch_size > steps_per_update:
         raise ConfigError(
-            f"ppo.minibatch_size={cfg.ppo.minibatch_size} exceeds runtime.steps_per_update="
-            f"{cfg.runtime.steps_per_update}"
+            f"ppo.minibatch_size={cfg.ppo.minibatch_size} exceeds the env steps of one update "
+            f"(clustering.update_every * env.max_episode_steps = {steps_per_update})"
         )
     if not cfg.runtime.serial and cfg.runtime.ray_address is None and cfg.runtime.num_workers > 64:
         raise ConfigError(f"runtime.num_workers={cfg.runtime.num_workers} is too many for a local Ray instance")

@@ -1,0 +1,210 @@
+"""The PPO learner: episodes in, one PPO update of an actor-critic out (pure torch, no Ray).
+
+:meth:`PPOLearner.update` takes episodes in the format of docs/architecture.md, computes GAE per
+episode (:func:`covers_dist.ppo.gae.compute_gae`, on rewards times ``reward_scale``), then runs
+``epochs`` passes of shuffled minibatches of the clipped objective
+(:func:`covers_dist.ppo.loss.ppo_loss`) with the behaviour log-probs and values stored in the data,
+gradient-norm clipping and Adam. Minibatches split each epoch's shuffled samples into
+``round(N / minibatch_size)`` near-equal parts, so every sample is used every epoch. A minibatch whose loss or
+gradient norm is not finite is skipped (no optimizer step, the weights stay as they were) and
+counted in ``skipped_steps``. With ``target_kl`` set, the update stops at the first minibatch
+whose approximate KL to the behaviour policy exceeds it (that minibatch is not applied).
+
+The learning rate follows ``lr_schedule``: constant, or linear from ``lr`` at update 0 to 0 at
+update ``total_updates`` (and 0 after). The learner owns the optimizer; :meth:`state_dict`
+covers the model weights, the optimizer, the update counters and the shuffling RNG.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from ..config import PPOConfig
+from .gae import compute_gae
+from .loss import normalize_advantages, ppo_loss
+
+__all__ = ["PPOLearner", "episodes_to_batch", "EPISODE_KEYS", "STAT_KEYS"]
+
+EPISODE_KEYS = ("image", "proprio", "action", "logprob", "value", "reward", "success", "terminated", "truncated")
+#: Keys of the dict returned by :meth:`PPOLearner.update`.
+STAT_KEYS = (
+    "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "grad_norm",
+    "skipped_steps", "optimizer_steps", "epochs_completed", "early_stopped", "lr", "num_samples",
+    "num_episodes", "episode_return_mean", "success_rate", "update_time_s", "samples_per_s", "update_count",
+)  # fmt: skip
+
+
+def _check_episode(i: int, ep: Mapping[str, Any]) -> int:
+    if not isinstance(ep, Mapping):
+        raise TypeError(f"episode {i} must be a dict, got {type(ep).__name__}")
+    missing = [k for k in EPISODE_KEYS if k not in ep]
+    if missing:
+        raise ValueError(f"episode {i} lacks keys {missing}")
+    t = len(ep["action"])
+    if t < 1:
+        raise ValueError(f"episode {i} has no steps")
+    expected = {"image": t + 1, "proprio": t + 1, "logprob": t, "value": t + 1, "reward": t, "success": t}
+    for key, n in expected.items():
+        if len(ep[key]) != n:
+            raise ValueError(f"episode {i}: {key} has {len(ep[key])} entries, expected {n} (action has {t})")
+    if np.asarray(ep["image"]).dtype != np.uint8:
+        raise TypeError(f"episode {i}: image must be uint8, got {np.asarray(ep['image']).dtype}")
+    return t
+
+
+def episodes_to_batch(
+    episodes: Sequence[Mapping[str, Any]], gamma: float, lam: float, reward_scale: float = 1.0
+) -> dict[str, torch.Tensor]:
+    """Flatten episodes into training tensors, with GAE advantages and returns per episode.
+
+    Rewards are multiplied by ``reward_scale`` first (values and returns live on that scale).
+    """
+    if not episodes:
+        raise ValueError("update needs at least one episode")
+    keys = ("image", "proprio", "action", "logprob", "value", "adv", "ret")
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+    for i, ep in enumerate(episodes):
+        t = _check_episode(i, ep)
+        rewards = np.asarray(ep["reward"], np.float64) * reward_scale
+        adv, ret = compute_gae(rewards, ep["value"], bool(ep["terminated"]), bool(ep["truncated"]), gamma, lam)
+        parts["image"].append(np.asarray(ep["image"])[:t])
+        parts["proprio"].append(np.asarray(ep["proprio"], np.float32)[:t])
+        parts["action"].append(np.asarray(ep["action"], np.float32))
+        parts["logprob"].append(np.asarray(ep["logprob"], np.float32))
+        parts["value"].append(np.asarray(ep["value"], np.float32)[:t])
+        parts["adv"].append(adv)
+        parts["ret"].append(ret)
+    return {k: torch.from_numpy(np.ascontiguousarray(np.concatenate(v))) for k, v in parts.items()}
+
+
+def _explained_variance(values: torch.Tensor, returns: torch.Tensor) -> float:
+    var = float(returns.var(unbiased=False))
+    return float("nan") if var == 0.0 else 1.0 - float((returns - values).var(unbiased=False)) / var
+
+
+class PPOLearner:
+    """PPO-clip updates of ``model`` (an :class:`covers_dist.models.ActorCritic`) as configured."""
+
+    def __init__(self, model: torch.nn.Module, ppo_cfg: PPOConfig, seed: int = 0) -> None:
+        if not isinstance(ppo_cfg, PPOConfig):
+            raise TypeError(f"ppo_cfg must be a PPOConfig, got {type(ppo_cfg).__name__}")
+        for name in ("evaluate_actions", "get_weights", "set_weights"):
+            if not callable(getattr(model, name, None)):
+                raise TypeError(f"model must provide {name}() (an ActorCritic), got {type(model).__name__}")
+        self.model = model
+        self.cfg = ppo_cfg
+        self.seed = int(seed)
+        self.optimizer = torch.optim.Adam(model.parameters(), lr=ppo_cfg.lr, eps=1e-5)
+        self.update_count = 0
+        self.skipped_total = 0
+        self._rng = torch.Generator().manual_seed(self.seed)
+
+    def learning_rate(self) -> float:
+        """The learning rate the next update will use."""
+        if self.cfg.lr_schedule == "constant":
+            return self.cfg.lr
+        return self.cfg.lr * max(0.0, 1.0 - self.update_count / self.cfg.total_updates)
+
+    def update(self, episodes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+        """One PPO update on ``episodes``; returns the statistics listed in :data:`STAT_KEYS`."""
+        cfg = self.cfg
+        start = time.perf_counter()
+        batch = episodes_to_batch(episodes, cfg.gamma, cfg.gae_lambda, cfg.reward_scale)
+        n = batch["action"].shape[0]
+        lr = self.learning_rate()
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        device = params[0].device
+        if device.type != "cpu":
+            batch = {k: v.to(device) for k, v in batch.items()}
+        was_training = self.model.training
+        self.model.train()
+        sums = {k: 0.0 for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "grad_norm")}
+        steps = skipped = epochs_done = processed = 0
+        early = False
+        num_mb = max(1, round(n / cfg.minibatch_size))
+        for _ in range(cfg.epochs):
+            for idx in torch.tensor_split(torch.randperm(n, generator=self._rng).to(device), num_mb):
+                obs = {"image": batch["image"][idx], "proprio": batch["proprio"][idx]}
+                logp, entropy, values = self.model.evaluate_actions(obs, batch["action"][idx])
+                adv = batch["adv"][idx]
+                terms = ppo_loss(
+                    logp, batch["logprob"][idx], normalize_advantages(adv) if cfg.norm_adv else adv,
+                    values, batch["value"][idx], batch["ret"][idx], entropy,
+                    cfg.clip_coef, cfg.vf_clip_coef, cfg.ent_coef, cfg.vf_coef,
+                )  # fmt: skip
+                processed += len(idx)
+                if cfg.target_kl is not None and terms.approx_kl > cfg.target_kl:
+                    early = True
+                    break
+                self.optimizer.zero_grad(set_to_none=True)
+                if not torch.isfinite(terms.loss):
+                    skipped += 1
+                    continue
+                terms.loss.backward()
+                grad_norm = float(torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm))
+                if not math.isfinite(grad_norm):
+                    self.optimizer.zero_grad(set_to_none=True)
+                    skipped += 1
+                    continue
+                self.optimizer.step()
+                steps += 1
+                for key in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac"):
+                    sums[key] += getattr(terms, key)
+                sums["grad_norm"] += grad_norm
+            if early:
+                break
+            epochs_done += 1
+        self.optimizer.zero_grad(set_to_none=True)
+        self.model.train(was_training)
+        self.update_count += 1
+        self.skipped_total += skipped
+        elapsed = time.perf_counter() - start
+        stats: dict[str, Any] = {k: (v / steps if steps else float("nan")) for k, v in sums.items()}
+        stats.update(
+            explained_variance=_explained_variance(batch["value"].cpu(), batch["ret"].cpu()),
+            skipped_steps=skipped,
+            optimizer_steps=steps,
+            epochs_completed=epochs_done,
+            early_stopped=early,
+            lr=lr,
+            num_samples=n,
+            num_episodes=len(episodes),
+            episode_return_mean=float(np.mean([np.sum(ep["reward"]) for ep in episodes])),
+            success_rate=float(np.mean([float(np.max(ep["success"])) > 0 for ep in episodes])),
+            update_time_s=elapsed,
+            samples_per_s=processed / elapsed if elapsed > 0 else float("nan"),
+            update_count=self.update_count,
+        )
+        return stats
+
+    # ---- checkpoints ---------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Model weights, optimizer state, counters and the shuffling RNG (deep copies)."""
+        return {
+            "model": self.model.get_weights(),
+            "optimizer": copy.deepcopy(self.optimizer.state_dict()),
+            "update_count": self.update_count,
+            "skipped_total": self.skipped_total,
+            "rng_state": self._rng.get_state(),
+            "seed": self.seed,
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore from :meth:`state_dict` (the model must have the same architecture)."""
+        missing = [k for k in ("model", "optimizer", "update_count", "skipped_total", "rng_state") if k not in state]
+        if missing:
+            raise ValueError(f"learner state lacks keys {missing}")
+        self.model.set_weights(state["model"])
+        self.optimizer.load_state_dict(copy.deepcopy(state["optimizer"]))
+        self.update_count = int(state["update_count"])
+        self.skipped_total = int(state["skipped_total"])
+        self._rng.set_state(state["rng_state"])
+        self.seed = int(state.get("seed", self.seed))

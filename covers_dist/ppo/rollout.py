@@ -1,0 +1,106 @@
+"""A serial episode collector: run a policy on a few gymnasium envs in lockstep, in one process.
+
+It produces episodes in the format of docs/architecture.md (the distributed rollout workers
+produce the same), batching the policy's inference over the envs that are still running. It is
+what the learning tests and the learner benchmark use; the runtime has its own workers.
+
+Episode success is ``max(success)`` over the steps (Meta-World's convention: the goal was reached
+at some point).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+__all__ = ["collect_episodes", "success_rate"]
+
+
+def collect_episodes(
+    model: Any,
+    envs: Sequence[Any],
+    num_episodes: int,
+    seed: int,
+    generator: torch.Generator | None = None,
+    deterministic: bool = False,
+) -> list[dict[str, Any]]:
+    """Run ``num_episodes`` episodes spread over ``envs`` (round-robin waves) with ``model.act``.
+
+    Episode ``i`` resets its env with seed ``seed + i``, so a seed fixes the task instances;
+    ``generator`` fixes the sampled actions. Episodes come back in index order.
+    """
+    if num_episodes < 1 or not envs:
+        raise ValueError(f"need num_episodes >= 1 and at least one env, got {num_episodes} and {len(envs)} envs")
+    episodes: list[dict[str, Any]] = []
+    for wave in range(0, num_episodes, len(envs)):
+        active = envs[: min(len(envs), num_episodes - wave)]
+        episodes.extend(_run_wave(model, active, seed + wave, wave, generator, deterministic))
+    return episodes
+
+
+def _run_wave(
+    model: Any, envs: Sequence[Any], seed: int, first_index: int, generator: torch.Generator | None, deterministic: bool
+) -> list[dict[str, Any]]:
+    n = len(envs)
+    obs = [env.reset(seed=seed + i)[0] for i, env in enumerate(envs)]
+    logs: list[dict[str, list]] = [
+        {"image": [o["image"]], "proprio": [o["proprio"]], "action": [], "logprob": [], "value": [], "reward": [],
+         "success": []}
+        for o in obs
+    ]  # fmt: skip
+    done = [False] * n
+    ends = [(False, False)] * n
+    while not all(done):
+        live = [i for i in range(n) if not done[i]]
+        batch = {
+            "image": np.stack([obs[i]["image"] for i in live]),
+            "proprio": np.stack([obs[i]["proprio"] for i in live]),
+        }
+        actions, logps, values = model.act(batch, deterministic=deterministic, generator=generator)
+        for j, i in enumerate(live):
+            o, r, term, trunc, info = envs[i].step(actions[j])
+            log = logs[i]
+            log["action"].append(actions[j])
+            log["logprob"].append(logps[j])
+            log["value"].append(values[j])
+            log["reward"].append(r)
+            log["success"].append(float(info.get("success", 0.0)))
+            log["image"].append(o["image"])
+            log["proprio"].append(o["proprio"])
+            obs[i] = o
+            if term or trunc:
+                done[i], ends[i] = True, (bool(term), bool(trunc))
+    # the value of each final observation (bootstraps truncations)
+    last = model.act(
+        {"image": np.stack([o["image"] for o in obs]), "proprio": np.stack([o["proprio"] for o in obs])},
+        deterministic=True,
+    )[2]
+    episodes = []
+    for i, env in enumerate(envs):
+        log = logs[i]
+        episodes.append(
+            {
+                "image": np.stack(log["image"]).astype(np.uint8),
+                "proprio": np.stack(log["proprio"]).astype(np.float32),
+                "action": np.stack(log["action"]).astype(np.float32),
+                "logprob": np.asarray(log["logprob"], np.float32),
+                "value": np.append(np.asarray(log["value"], np.float32), np.float32(last[i])),
+                "reward": np.asarray(log["reward"], np.float32),
+                "success": np.asarray(log["success"], np.float32),
+                "terminated": ends[i][0],
+                "truncated": ends[i][1],
+                "task": getattr(env, "task", None),
+                "g": getattr(getattr(env, "g", None), "name", None),
+                "episode_index": first_index + i,
+            }
+        )
+    return episodes
+
+
+def success_rate(episodes: Sequence[dict[str, Any]]) -> float:
+    """Fraction of episodes with success at some step."""
+    if not episodes:
+        raise ValueError("success_rate needs at least one episode")
+    return float(np.mean([float(np.max(ep["success"])) > 0 for ep in episodes]))

@@ -1,0 +1,248 @@
+"""The equivariant actor-critic, its CNN twin, fast inference and weight transport."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from covers_dist.config import NetworkConfig
+from covers_dist.envs.layout import ObsLayout, transform_obs
+from covers_dist.envs.toy import ToyTask, toy_layout
+from covers_dist.models import ActorCritic, build_actor_critic, equivariance_errors
+from covers_dist.models.checks import max_error
+from covers_dist.symmetry import D4_ELEMENTS, get_group
+
+METAWORLD_LAYOUT = ObsLayout(image_size=64, proprio_dim=4, proprio_pairs=1, action_dim=4, action_pairs=1)
+LAYOUTS = {"toy32": toy_layout(32), "metaworld64": METAWORLD_LAYOUT}
+TOL = 1e-4
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Small tensors on 2 shared cores: one intra-op thread is faster and reproducible."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def random_obs(layout: ObsLayout, n: int, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    s = layout.image_size
+    return {
+        "image": rng.integers(0, 256, size=(n, s, s, 3), dtype=np.uint8),
+        "proprio": rng.normal(size=(n, layout.proprio_dim)).astype(np.float32),
+    }
+
+
+def toy_obs(n: int, size: int = 32) -> dict[str, np.ndarray]:
+    """Real toy observations (structured images, not noise)."""
+    images, proprios = [], []
+    for i in range(n):
+        env = ToyTask(("reach", "push", "avoid")[i % 3], "e", image_size=size)
+        obs, _ = env.reset(seed=i)
+        for _ in range(3):
+            obs, *_ = env.step(np.array([0.7, -0.4], np.float32))
+        images.append(obs["image"])
+        proprios.append(obs["proprio"])
+    return {"image": np.stack(images), "proprio": np.stack(proprios)}
+
+
+def to_torch(obs: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in obs.items()}
+
+
+@pytest.fixture(scope="module")
+def nets() -> dict[tuple[str, str], ActorCritic]:
+    cfg = NetworkConfig()
+    return {
+        (name, kind): build_actor_critic(cfg, layout, kind=kind, seed=1)
+        for name, layout in LAYOUTS.items()
+        for kind in ("equivariant", "cnn")
+    }
+
+
+@pytest.mark.parametrize("layout_name", list(LAYOUTS))
+@pytest.mark.parametrize("mode", ["train", "eval"])
+def test_equivariant_net_is_equivariant_for_every_element(nets, layout_name, mode):
+    model = nets[(layout_name, "equivariant")]
+    layout = LAYOUTS[layout_name]
+    obs = random_obs(layout, 3, seed=2) if layout_name == "metaworld64" else toy_obs(3)
+    model.train(mode == "train")
+    try:
+        errors = equivariance_errors(model, obs)
+    finally:
+        model.train()
+    assert sorted(errors) == sorted(g.name for g in D4_ELEMENTS)
+    for g, row in errors.items():
+        assert set(row) == {"mean", "log_std", "value", "features"}
+        assert max(row.values()) < TOL, (g, row)
+
+
+@pytest.mark.parametrize("layout_name", list(LAYOUTS))
+def test_fast_inference_path_is_equivariant_and_matches_the_module(nets, layout_name):
+    model = nets[(layout_name, "equivariant")]
+    layout = LAYOUTS[layout_name]
+    obs = random_obs(layout, 5, seed=3)
+    assert max_error(equivariance_errors(model, obs, fast=True)) < TOL
+    actions, _, values = model.act(obs, deterministic=True)
+    with torch.no_grad():
+        mean, _, value = model(to_torch(obs))
+        feats = model.features(to_torch(obs)).numpy()
+    np.testing.assert_allclose(actions, mean.numpy(), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(values, value.numpy(), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(model.features_np(obs), feats, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("layout_name", list(LAYOUTS))
+def test_cnn_twin_is_not_invariant(nets, layout_name):
+    model = nets[(layout_name, "cnn")]
+    layout = LAYOUTS[layout_name]
+    obs = toy_obs(3) if layout_name == "toy32" else random_obs(layout, 3, seed=4)
+    errors = equivariance_errors(model, obs, group="D4")
+    assert max(errors["e"].values()) == 0.0
+    for g, row in errors.items():
+        if g != "e":
+            # features and value change when the scene is rotated or mirrored
+            assert row["features"] > 0.01 and row["value"] > 1e-3, (g, row)
+    assert max_error(errors) > 0.05
+
+
+def test_twin_has_a_similar_parameter_count_and_same_interface(nets):
+    for name in LAYOUTS:
+        eq, cnn = nets[(name, "equivariant")], nets[(name, "cnn")]
+        assert 0.67 < cnn.num_parameters() / eq.num_parameters() < 1.5
+        obs = to_torch(random_obs(LAYOUTS[name], 2))
+        for model in (eq, cnn):
+            mean, log_std, value = model(obs)
+            assert mean.shape == log_std.shape == (2, LAYOUTS[name].action_dim)
+            assert value.shape == (2,)
+            assert model.features(obs).shape == (2, model.feature_dim)
+    assert nets[("toy32", "equivariant")].feature_dim == NetworkConfig().hidden
+
+
+@pytest.mark.parametrize("group", ["C4", "D2", "C2", "D1", "trivial"])
+def test_subgroups_build_and_are_equivariant(group):
+    cfg = NetworkConfig(group=group, channels=[2, 2, 2, 2], hidden=4)
+    model = build_actor_critic(cfg, toy_layout(32), seed=0)
+    errors = equivariance_errors(model, random_obs(toy_layout(32), 2))
+    assert sorted(errors) == sorted(g.name for g in get_group(group))
+    assert max_error(errors, skip_identity=False) < TOL
+
+
+def test_log_std_is_shared_within_planar_pairs():
+    cfg = NetworkConfig(channels=[2, 2, 2, 2], hidden=4, init_log_std=-0.3)
+    model = build_actor_critic(cfg, METAWORLD_LAYOUT, seed=0)
+    with torch.no_grad():
+        model.log_std_free.copy_(torch.tensor([0.1, 0.2, 0.3]))
+    np.testing.assert_allclose(model.log_std().detach().numpy(), [0.1, 0.1, 0.2, 0.3], rtol=1e-6)
+
+
+def test_weights_round_trip_exactly_across_modes(nets):
+    src = nets[("toy32", "equivariant")]
+    dst = build_actor_critic(NetworkConfig(), toy_layout(32), seed=7)
+    obs = random_obs(toy_layout(32), 4)
+    src.eval()
+    try:
+        weights = src.get_weights()  # taken in eval mode
+        dst.train()
+        dst.set_weights(weights)  # loaded in train mode
+        again = dst.get_weights()
+        assert weights.keys() == again.keys()
+        assert all(torch.equal(weights[k], again[k]) for k in weights)
+        assert all(v.device.type == "cpu" and not v.requires_grad for v in weights.values())
+        np.testing.assert_array_equal(src.act(obs, deterministic=True)[0], dst.act(obs, deterministic=True)[0])
+        # a model in eval mode (cached escnn filters) picks the new weights up too
+        other = build_actor_critic(NetworkConfig(), toy_layout(32), seed=8).eval()
+        other.set_weights(weights)
+        with torch.no_grad():
+            np.testing.assert_array_equal(other(to_torch(obs))[0].numpy(), src(to_torch(obs))[0].numpy())
+    finally:
+        src.train()
+
+
+def test_set_weights_rejects_mismatches(nets):
+    model = nets[("toy32", "cnn")]
+    weights = model.get_weights()
+    key = next(iter(weights))
+    with pytest.raises(ValueError, match="missing"):
+        model.set_weights({k: v for k, v in weights.items() if k != key})
+    with pytest.raises(ValueError, match="shape"):
+        model.set_weights(dict(weights, **{key: torch.zeros(3, 3, 3)}))
+
+
+def test_act_samples_reproducibly_and_reports_consistent_log_probs(nets):
+    model = nets[("metaworld64", "equivariant")]
+    obs = random_obs(METAWORLD_LAYOUT, 6)
+    a1, lp1, v1 = model.act(obs, generator=torch.Generator().manual_seed(3))
+    a2, lp2, v2 = model.act(obs, generator=torch.Generator().manual_seed(3))
+    assert a1.dtype == lp1.dtype == v1.dtype == np.float32
+    assert a1.shape == (6, 4) and lp1.shape == v1.shape == (6,)
+    np.testing.assert_array_equal(a1, a2)
+    np.testing.assert_array_equal(lp1, lp2)
+    a3, _, _ = model.act(obs, generator=torch.Generator().manual_seed(4))
+    assert not np.allclose(a1, a3)
+    with torch.no_grad():
+        logp, entropy, value = model.evaluate_actions(to_torch(obs), torch.from_numpy(a1))
+    np.testing.assert_allclose(lp1, logp.numpy(), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(v1, value.numpy(), rtol=1e-4, atol=1e-5)
+    assert entropy.shape == (6,)
+
+
+def test_fast_path_follows_in_place_parameter_updates():
+    model = build_actor_critic(NetworkConfig(channels=[2, 2, 2, 2], hidden=4), toy_layout(32), seed=0)
+    obs = random_obs(toy_layout(32), 3)
+    before = model.act(obs, deterministic=True)[2]
+    opt = torch.optim.SGD(model.parameters(), lr=0.5)
+    value = model(to_torch(obs))[2]
+    (value - 10.0).pow(2).mean().backward()
+    opt.step()
+    after = model.act(obs, deterministic=True)[2]
+    with torch.no_grad():
+        expected = model(to_torch(obs))[2].numpy()
+    assert not np.allclose(before, after)
+    np.testing.assert_allclose(after, expected, rtol=1e-4, atol=1e-5)
+
+
+def test_features_np_is_chunked_and_matches_one_batch(nets):
+    model = nets[("toy32", "equivariant")]
+    obs = toy_obs(7)
+    whole = model.features_np(obs)
+    chunked = model.features_np(obs, chunk=3)
+    assert whole.shape == (7, model.feature_dim)
+    np.testing.assert_allclose(chunked, whole, rtol=1e-5, atol=1e-6)
+    moved = model.features_np(transform_obs(model.layout, D4_ELEMENTS[5], obs))
+    np.testing.assert_allclose(moved, whole, rtol=1e-4, atol=1e-5)
+
+
+def test_same_seed_same_weights_and_kind_override():
+    cfg = NetworkConfig(channels=[2, 2, 2, 2], hidden=4)
+    a = build_actor_critic(cfg, toy_layout(32), seed=5).get_weights()
+    b = build_actor_critic(cfg, toy_layout(32), seed=5).get_weights()
+    c = build_actor_critic(cfg, toy_layout(32), seed=6).get_weights()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+    assert build_actor_critic(cfg, toy_layout(32), kind="cnn").kind == "cnn"
+    assert build_actor_critic(dataclasses.replace(cfg, kind="cnn"), toy_layout(32)).kind == "cnn"
+
+
+def test_bad_inputs_fail_with_clear_errors(nets):
+    model = nets[("toy32", "cnn")]
+    obs = to_torch(random_obs(toy_layout(32), 2))
+    with pytest.raises(ValueError, match="kind"):
+        build_actor_critic(NetworkConfig(), toy_layout(32), kind="mlp")
+    with pytest.raises(ValueError, match="divisible"):
+        build_actor_critic(NetworkConfig(channels=[2, 2, 2, 2]), toy_layout(24), kind="cnn")
+    with pytest.raises(TypeError, match="uint8"):
+        model(dict(obs, image=obs["image"].float()))
+    with pytest.raises(ValueError, match="shape"):
+        model(dict(obs, image=obs["image"][:, :16]))
+    with pytest.raises(ValueError, match="proprio"):
+        model(dict(obs, proprio=obs["proprio"][:, :3]))
+    with pytest.raises(TypeError, match="image"):
+        model({"proprio": obs["proprio"]})
+    with pytest.raises(ValueError, match="actions"):
+        model.evaluate_actions(obs, torch.zeros(2, 3))

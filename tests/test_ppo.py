@@ -1,0 +1,260 @@
+"""GAE, the PPO loss, the learner (skips, early stop, schedule, checkpoints, determinism)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from covers_dist.cli import main as cli_main
+from covers_dist.config import NetworkConfig, PPOConfig
+from covers_dist.envs.toy import ToyTask, toy_layout
+from covers_dist.models import build_actor_critic
+from covers_dist.ppo import PPOLearner, collect_episodes, compute_gae, normalize_advantages, ppo_loss
+
+SMALL_NET = NetworkConfig(channels=[2, 2, 2, 2], hidden=4)
+LAYOUT = toy_layout(16)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Small tensors on 2 shared cores: one intra-op thread is faster and reproducible."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+# ---- GAE -------------------------------------------------------------------------------------
+def test_gae_single_final_reward_by_hand():
+    rewards = np.array([0.0, 0.0, 0.0, 1.0])
+    values = np.zeros(5)
+    adv, ret = compute_gae(rewards, values, terminated=True, truncated=False, gamma=0.9, lam=1.0)
+    np.testing.assert_allclose(ret, [0.9**3, 0.9**2, 0.9, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(adv, ret, rtol=1e-6)
+    # with lambda = 0 only the one-step TD error remains: zero everywhere but the last step
+    adv0, _ = compute_gae(rewards, values, True, False, gamma=0.9, lam=0.0)
+    np.testing.assert_allclose(adv0, [0, 0, 0, 1.0], atol=1e-7)
+
+
+def test_truncation_bootstraps_and_termination_does_not():
+    rewards, values = np.array([1.0]), np.array([0.5, 2.0])
+    adv_trunc, ret_trunc = compute_gae(rewards, values, terminated=False, truncated=True, gamma=0.9, lam=0.95)
+    adv_term, ret_term = compute_gae(rewards, values, terminated=True, truncated=False, gamma=0.9, lam=0.95)
+    assert adv_trunc[0] == pytest.approx(1.0 + 0.9 * 2.0 - 0.5)
+    assert adv_term[0] == pytest.approx(1.0 - 0.5)
+    assert ret_trunc[0] == pytest.approx(1.0 + 0.9 * 2.0)
+    assert ret_term[0] == pytest.approx(1.0)
+
+
+def reference_gae(rewards, values, terminated, gamma, lam):
+    """A_t = sum_k (gamma * lam)^k delta_{t+k}, written as a plain double loop."""
+    t_max = len(rewards)
+    deltas = []
+    for t in range(t_max):
+        last = t == t_max - 1
+        next_v = 0.0 if (last and terminated) else values[t + 1]
+        deltas.append(rewards[t] + gamma * next_v - values[t])
+    adv = []
+    for t in range(t_max):
+        adv.append(sum((gamma * lam) ** k * deltas[t + k] for k in range(t_max - t)))
+    return np.array(adv), np.array(adv) + np.asarray(values[:-1])
+
+
+@pytest.mark.parametrize("terminated", [True, False])
+def test_gae_matches_a_plain_loop_reference(terminated):
+    rng = np.random.default_rng(0)
+    rewards, values = rng.normal(size=37), rng.normal(size=38)
+    adv, ret = compute_gae(rewards, values, terminated, not terminated, gamma=0.97, lam=0.9)
+    ref_adv, ref_ret = reference_gae(rewards, values, terminated, 0.97, 0.9)
+    np.testing.assert_allclose(adv, ref_adv, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(ret, ref_ret, rtol=1e-5, atol=1e-5)
+
+
+def test_gae_rejects_wrong_lengths():
+    with pytest.raises(ValueError, match="len\\(rewards\\) \\+ 1"):
+        compute_gae(np.zeros(3), np.zeros(3), True, False, 0.9, 0.9)
+
+
+# ---- loss ------------------------------------------------------------------------------------
+def reference_loss(new_logp, old_logp, adv, v, v_old, ret, ent, eps, vclip, ent_coef, vf_coef):
+    pg, vl = [], []
+    for i in range(len(adv)):
+        ratio = math.exp(new_logp[i] - old_logp[i])
+        clipped_ratio = min(max(ratio, 1 - eps), 1 + eps)
+        pg.append(-min(ratio * adv[i], clipped_ratio * adv[i]))
+        v_clip = v_old[i] + min(max(v[i] - v_old[i], -vclip), vclip)
+        vl.append(0.5 * max((v[i] - ret[i]) ** 2, (v_clip - ret[i]) ** 2))
+    policy, value, entropy = np.mean(pg), np.mean(vl), np.mean(ent)
+    return policy - ent_coef * entropy + vf_coef * value, policy, value
+
+
+def test_ppo_loss_matches_an_independent_implementation():
+    rng = np.random.default_rng(1)
+    n = 64
+    arrays = [rng.normal(size=n) * s for s in (0.3, 0.3, 1.0, 1.0, 1.0, 1.0, 1.0)]
+    new_logp, old_logp, adv, v, v_old, ret, ent = arrays
+    t = [torch.tensor(a) for a in arrays]
+    terms = ppo_loss(*t, clip_coef=0.2, vf_clip_coef=0.3, ent_coef=0.01, vf_coef=0.5)
+    loss, policy, value = reference_loss(new_logp, old_logp, adv, v, v_old, ret, ent, 0.2, 0.3, 0.01, 0.5)
+    assert float(terms.loss) == pytest.approx(loss, rel=1e-9)
+    assert terms.policy_loss == pytest.approx(policy, rel=1e-9)
+    assert terms.value_loss == pytest.approx(value, rel=1e-9)
+    ratio = np.exp(new_logp - old_logp)
+    assert terms.clip_frac == pytest.approx(np.mean(np.abs(ratio - 1) > 0.2))
+    assert terms.approx_kl == pytest.approx(np.mean((ratio - 1) - np.log(ratio)), rel=1e-9)
+    unclipped = ppo_loss(*t, clip_coef=0.2, vf_clip_coef=None, ent_coef=0.0, vf_coef=1.0)
+    assert unclipped.value_loss == pytest.approx(0.5 * np.mean((v - ret) ** 2), rel=1e-9)
+
+
+def test_unmoved_policy_has_ratio_one_and_no_clipping():
+    adv = torch.tensor([1.0, -2.0, 0.5, 3.0])
+    logp = torch.tensor([-1.0, -0.3, -2.0, -0.7], requires_grad=True)
+    zeros = torch.zeros(4)
+    terms = ppo_loss(logp, logp.detach(), adv, zeros, zeros, zeros, zeros, 0.2, 0.2, 0.0, 0.0)
+    assert terms.policy_loss == pytest.approx(-float(adv.mean()))  # clipped term == unclipped term
+    assert terms.approx_kl == 0.0 and terms.clip_frac == 0.0
+    terms.loss.backward()
+    np.testing.assert_allclose(logp.grad.numpy(), -adv.numpy() / 4, rtol=1e-6)  # gradient of the unclipped term
+    norm = normalize_advantages(adv)
+    assert float(norm.mean()) == pytest.approx(0.0, abs=1e-6) and float(norm.std(unbiased=False)) == pytest.approx(1.0)
+
+
+# ---- learner ---------------------------------------------------------------------------------
+def make_model(seed: int = 0, kind: str = "equivariant"):
+    return build_actor_critic(SMALL_NET, LAYOUT, kind=kind, seed=seed)
+
+
+def make_episodes(model, n: int = 4, seed: int = 0):
+    envs = [ToyTask("reach", "e", image_size=16, max_episode_steps=12) for _ in range(2)]
+    return collect_episodes(model, envs, n, seed=seed, generator=torch.Generator().manual_seed(seed))
+
+
+def weights_equal(a, b) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_first_minibatch_sees_ratio_one():
+    model = make_model()
+    cfg = PPOConfig(epochs=1, minibatch_size=48, vf_clip_coef=None)
+    stats = PPOLearner(model, cfg).update(make_episodes(model))
+    assert stats["optimizer_steps"] == 1 and stats["num_samples"] == 48
+    assert stats["approx_kl"] < 1e-8 and stats["clip_frac"] == 0.0
+    assert abs(stats["policy_loss"]) < 1e-5  # -mean of normalized advantages at ratio 1
+
+
+def test_update_reports_stats_and_changes_weights():
+    model = make_model()
+    learner = PPOLearner(model, PPOConfig(epochs=2, minibatch_size=16, lr=1e-3))
+    before = model.get_weights()
+    stats = learner.update(make_episodes(model))
+    assert not weights_equal(before, model.get_weights())
+    assert stats["optimizer_steps"] == 6 and stats["skipped_steps"] == 0 and stats["epochs_completed"] == 2
+    for key in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "grad_norm"):
+        assert math.isfinite(stats[key]), key
+    assert stats["lr"] == 1e-3 and stats["num_samples"] == 48 and learner.update_count == 1
+    assert model.training
+
+
+def test_nan_loss_or_gradient_skips_the_step_and_keeps_weights():
+    model = make_model()
+    learner = PPOLearner(model, PPOConfig(epochs=2, minibatch_size=24))
+    episodes = make_episodes(model)
+    before = model.get_weights()
+    bad = [dict(ep) for ep in episodes]
+    bad[0]["reward"] = bad[0]["reward"].copy()
+    bad[0]["reward"][-1] = np.nan  # GAE spreads it over the whole episode
+    stats = learner.update(bad)
+    assert stats["skipped_steps"] == 4 and stats["optimizer_steps"] == 0
+    assert weights_equal(before, model.get_weights())
+    handle = model.log_std_free.register_hook(lambda g: g * float("inf"))
+    try:
+        stats = learner.update(episodes)
+    finally:
+        handle.remove()
+    assert stats["skipped_steps"] == 4 and weights_equal(before, model.get_weights())
+    assert learner.skipped_total == 8
+    assert learner.update(episodes)["skipped_steps"] == 0  # and it recovers
+
+
+def test_target_kl_stops_early():
+    model = make_model()
+    learner = PPOLearner(model, PPOConfig(epochs=4, minibatch_size=8, lr=1e-2, target_kl=1e-6))
+    stats = learner.update(make_episodes(model))
+    assert stats["early_stopped"] and stats["optimizer_steps"] < 4 * 6
+
+
+def test_linear_learning_rate_schedule():
+    model = make_model()
+    learner = PPOLearner(model, PPOConfig(lr=1e-3, lr_schedule="linear", total_updates=4, minibatch_size=48))
+    episodes = make_episodes(model)
+    lrs = [learner.update(episodes)["lr"] for _ in range(5)]
+    np.testing.assert_allclose(lrs, [1e-3, 7.5e-4, 5e-4, 2.5e-4, 0.0])
+
+
+def test_same_seed_same_actions_and_losses():
+    runs = []
+    for _ in range(2):
+        model = make_model(seed=3)
+        learner = PPOLearner(model, PPOConfig(epochs=2, minibatch_size=16), seed=11)
+        episodes = make_episodes(model, seed=5)
+        stats = [learner.update(episodes) for _ in range(2)]
+        runs.append((episodes, stats, model.get_weights()))
+    (ep_a, st_a, w_a), (ep_b, st_b, w_b) = runs
+    for a, b in zip(ep_a, ep_b):
+        np.testing.assert_array_equal(a["action"], b["action"])
+        np.testing.assert_array_equal(a["reward"], b["reward"])
+    for a, b in zip(st_a, st_b):
+        for key in ("policy_loss", "value_loss", "approx_kl", "grad_norm"):
+            assert a[key] == b[key], key
+    assert weights_equal(w_a, w_b)
+
+
+@pytest.mark.parametrize("kind", ["equivariant", "cnn"])
+def test_checkpoint_restores_model_optimizer_and_counters(kind):
+    model = make_model(seed=0, kind=kind)
+    cfg = PPOConfig(epochs=2, minibatch_size=16, lr_schedule="linear", total_updates=10)
+    learner = PPOLearner(model, cfg, seed=2)
+    episodes = make_episodes(model)
+    learner.update(episodes)
+    state = learner.state_dict()
+    clone = PPOLearner(make_model(seed=9, kind=kind), cfg, seed=0)
+    clone.load_state_dict(state)
+    assert clone.update_count == 1
+    a, b = learner.update(episodes), clone.update(episodes)
+    assert a["policy_loss"] == b["policy_loss"] and a["lr"] == b["lr"]
+    assert weights_equal(learner.model.get_weights(), clone.model.get_weights())
+    with pytest.raises(ValueError, match="lacks keys"):
+        clone.load_state_dict({"model": state["model"]})
+
+
+def test_bad_episodes_fail_with_clear_errors():
+    model = make_model()
+    learner = PPOLearner(model, PPOConfig(minibatch_size=16))
+    episodes = make_episodes(model, n=2)
+    with pytest.raises(ValueError, match="at least one episode"):
+        learner.update([])
+    with pytest.raises(ValueError, match="lacks keys"):
+        learner.update([{k: v for k, v in episodes[0].items() if k != "logprob"}])
+    short = dict(episodes[0], value=episodes[0]["value"][:-1])
+    with pytest.raises(ValueError, match="episode 0: value"):
+        learner.update([short])
+    with pytest.raises(TypeError, match="PPOConfig"):
+        PPOLearner(model, dataclasses.asdict(PPOConfig()))
+
+
+def test_bench_learner_prints_json(capsys):
+    code = cli_main(
+        ["bench", "learner", "--json", "--repeats", "1", "--samples", "64", "--channels", "2,2,2,2",
+         "--hidden", "4", "--suites", "toy", "--inference-seconds", "0.05", "--env-steps", "20"]
+    )  # fmt: skip
+    assert code == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    kinds = {row["net"] for row in rows if row["kind"] == "net"}
+    assert kinds == {"equivariant", "cnn", "cnn_matched_channels"}
+    summary = [row for row in rows if row["kind"] == "summary"]
+    assert summary and summary[0]["update_ratio_equivariant_to_cnn"] > 0
