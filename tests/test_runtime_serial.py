@@ -15,6 +15,7 @@ TINY = [
     "runtime.num_workers=2",
     "runtime.envs_per_worker=4",
     "env.episodes_per_task=8",
+    "env.max_episode_steps=50",
     "clustering.update_every=8",
     "ppo.epochs=1",
     "ppo.minibatch_size=200",

@@ -1,0 +1,341 @@
+"""The policy bank: one entry per policy (id, buffer of initial observations, counters, history).
+
+:class:`PolicyBank` is plain Python (numpy, POT, scikit-learn): the clustering actor hosts one,
+serial code and tests call it directly. It never builds networks; it reads features through a
+:data:`~covers_dist.clustering.features.FeatureFn` and tells the caller, through each
+:class:`~covers_dist.clustering.assignment.AssignmentRecord`, which policy to train next and
+whether a fresh one must be made.
+
+Episodes: an observation batch ``O`` holds the first ``k = initial_frames`` frames of each of
+``E`` episodes (``n = E * k`` frames, episode by episode). Episodes carry indices (given by the
+caller, or numbered by the bank from 0); their true group ids, when given, feed the metrics only.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+from .assignment import AssignmentRecord, decide
+from .buffer import REPLACEMENT_RULES, ObservationBuffer, check_obs
+from .distances import get_distance
+from .features import FEATURE_NORMS, FeatureFn, check_features, normalize_pair
+from .metrics import adjusted_rand_index, confusion_table, policy_counts
+from .policy_entry import PolicyEntry, batch_group, check_int
+
+__all__ = ["PolicyBank", "MODES"]
+
+MODES: tuple[str, ...] = ("distance", "ground_truth")
+
+
+class PolicyBank:
+    """Policies, their buffers ``B_i``, the assignment rule, the history and the metrics."""
+
+    def __init__(
+        self,
+        feature_fn: FeatureFn | None = None,
+        *,
+        metric: str = "wasserstein",
+        threshold: float = 1.0,
+        buffer_size: int = 128,
+        replacement: str = "reservoir",
+        max_policies: int = 64,
+        initial_frames: int = 1,
+        feature_norm: str = "buffer",
+        mode: str = "distance",
+        seed: int = 0,
+    ) -> None:
+        get_distance(metric)  # validates the name
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not threshold > 0:
+            raise ValueError(f"threshold must be a number > 0, got {threshold!r}")
+        if replacement not in REPLACEMENT_RULES:
+            raise ValueError(f"replacement must be one of {list(REPLACEMENT_RULES)}, got {replacement!r}")
+        if feature_norm not in FEATURE_NORMS:
+            raise ValueError(f"feature_norm must be one of {list(FEATURE_NORMS)}, got {feature_norm!r}")
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
+        if feature_fn is not None and not callable(feature_fn):
+            raise TypeError(f"feature_fn must be callable, got {type(feature_fn).__name__}")
+        self.feature_fn = feature_fn
+        self.metric = metric
+        self.threshold = float(threshold)
+        self.buffer_size = check_int("buffer_size", buffer_size, 1)
+        self.replacement = replacement
+        self.max_policies = check_int("max_policies", max_policies, 1)
+        self.initial_frames = check_int("initial_frames", initial_frames, 1)
+        self.feature_norm = feature_norm
+        self.mode = mode
+        self.seed = check_int("seed", seed, 0)
+        self.entries: dict[int, PolicyEntry] = {}
+        self.history: list[AssignmentRecord] = []
+        self.current_policy_id: int | None = None
+        self.episode_policy: dict[int, int] = {}  # episode index -> policy id (assigned episodes)
+        self.labels: dict[int, tuple[int, int]] = {}  # episode index -> (policy id, true group id)
+        self.group_policy: dict[int, int] = {}  # ground-truth mode: group id -> policy id
+        self.next_episode = 0
+        if metric == "wasserstein":
+            import ot  # noqa: F401  (POT's first import costs about a second; pay it here, not in an assignment)
+
+    @classmethod
+    def from_config(cls, cfg: Any, feature_fn: FeatureFn | None = None, mode: str | None = None) -> "PolicyBank":
+        """Build from a :class:`covers_dist.config.Config` (``runtime.method == "covers-gt"`` picks
+        ground-truth mode unless ``mode`` is given)."""
+        c = cfg.clustering
+        if mode is None:
+            mode = "ground_truth" if cfg.runtime.method == "covers-gt" else "distance"
+        return cls(
+            feature_fn,
+            metric=c.metric,
+            threshold=cfg.threshold,
+            buffer_size=c.buffer_size,
+            replacement=c.replacement,
+            max_policies=c.max_policies,
+            initial_frames=c.initial_frames,
+            feature_norm=c.feature_norm,
+            mode=mode,
+            seed=cfg.seed,
+        )
+
+    # ---- queries --------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    @property
+    def policy_ids(self) -> list[int]:
+        return sorted(self.entries)
+
+    def _features(self, policy_id: int, obs: dict[str, np.ndarray], n: int) -> np.ndarray:
+        if self.feature_fn is None:
+            raise ValueError("this bank has no feature_fn: pass one to PolicyBank(...) or set_feature_fn()")
+        return check_features(self.feature_fn(policy_id, obs), n, policy_id)
+
+    def set_feature_fn(self, feature_fn: FeatureFn | None) -> None:
+        """Replace the feature source (e.g. after restoring a bank from a checkpoint)."""
+        if feature_fn is not None and not callable(feature_fn):
+            raise TypeError(f"feature_fn must be callable, got {type(feature_fn).__name__}")
+        self.feature_fn = feature_fn
+
+    def distances(self, obs: dict[str, np.ndarray]) -> dict[int, float]:
+        """``d_i`` between ``obs`` and every policy's buffer, in each policy's feature space."""
+        n = check_obs(obs)
+        distance = get_distance(self.metric)
+        out: dict[int, float] = {}
+        shared = getattr(self.feature_fn, "shared", False)
+        f_obs = self._features(self.policy_ids[0], obs, n) if shared and self.entries else None
+        for pid in self.policy_ids:
+            buf = self.entries[pid].buffer.observations()
+            if f_obs is not None:
+                f_o, f_b = f_obs, self._features(pid, buf, len(buf["image"]))
+            else:  # one encoder pass over O and B_i together
+                both = {k: np.concatenate([obs[k], buf[k]]) for k in ("image", "proprio")}
+                f = self._features(pid, both, n + len(buf["image"]))
+                f_o, f_b = f[:n], f[n:]
+            out[pid] = distance(*normalize_pair(f_o, f_b, self.feature_norm))
+        return out
+
+    # ---- the assignment step ----------------------------------------------------------------------
+    def _episodes(
+        self, n: int, episode_indices: Sequence[int] | None, group_ids: int | Sequence[int] | None, strict: bool
+    ) -> tuple[list[int], list[int] | None]:
+        if episode_indices is None:
+            if n % self.initial_frames and strict:
+                raise ValueError(f"obs holds {n} frames, not a multiple of initial_frames={self.initial_frames}")
+            count = max(n // self.initial_frames, 1)
+            episodes = list(range(self.next_episode, self.next_episode + count))
+        else:
+            episodes = [check_int("episode index", e, 0) for e in episode_indices]
+            if not episodes or n % len(episodes):
+                raise ValueError(f"obs holds {n} frames, which cannot be split evenly over {len(episodes)} episodes")
+            if len(set(episodes)) != len(episodes):
+                raise ValueError(f"episode_indices has duplicates: {episodes}")
+            seen = [e for e in episodes if e in self.episode_policy or e in self.labels]
+            if seen:
+                raise ValueError(f"episode indices {seen} were already assigned")
+        if group_ids is None:
+            return episodes, None
+        groups = [group_ids] * len(episodes) if isinstance(group_ids, (int, np.integer)) else list(group_ids)
+        if len(groups) != len(episodes):
+            raise ValueError(f"group_ids has {len(groups)} entries for {len(episodes)} episodes")
+        return episodes, [check_int("group id", g, 0) for g in groups]
+
+    def _plan(
+        self, obs: dict[str, np.ndarray], episode_indices: Sequence[int] | None, group_ids: Any, strict: bool = True
+    ) -> tuple[AssignmentRecord, float]:
+        t0 = time.perf_counter()
+        n = check_obs(obs)
+        if self.entries:  # every buffer holds frames of one shape; check before anything changes
+            held = next(iter(self.entries.values())).buffer.observations()
+            if obs["image"].shape[1:] != held["image"].shape[1:] or obs["proprio"].shape[1:] != held["proprio"].shape[1:]:
+                raise ValueError(
+                    f"obs frames {obs['image'].shape[1:]} / proprio {obs['proprio'].shape[1:]} differ from the "
+                    f"bank's {held['image'].shape[1:]} / {held['proprio'].shape[1:]}"
+                )
+        episodes, groups = self._episodes(n, episode_indices, group_ids, strict)
+        distances: dict[int, float] = {}
+        if self.mode == "ground_truth":
+            if groups is None:
+                raise ValueError("ground-truth mode needs group_ids for every assignment")
+            group = batch_group(groups)
+            if group in self.group_policy:
+                pid, decision = self.group_policy[group], "recall"
+            elif not self.entries:
+                pid, decision = None, "adopt"
+            elif len(self.entries) >= self.max_policies:
+                pid, decision = self.current_policy_id, "recall_at_cap"
+            else:
+                pid, decision = None, "new"
+        else:
+            distances = self.distances(obs)
+            pid, decision = decide(distances, self.threshold, self.max_policies)
+        if pid is None:
+            pid = 0 if not self.entries else max(self.entries) + 1
+        record = AssignmentRecord(
+            index=len(self.history),
+            policy_id=int(pid),
+            decision=decision,
+            new=decision in ("adopt", "new"),
+            distances=distances,
+            threshold=self.threshold,
+            metric=self.metric,
+            mode=self.mode,
+            num_observations=n,
+            episode_indices=episodes,
+            wall_time_ms=0.0,
+            time_unix=time.time(),
+            true_groups=groups,
+        )
+        return record, t0
+
+    def what_if(
+        self,
+        obs: dict[str, np.ndarray],
+        *,
+        episode_indices: Sequence[int] | None = None,
+        group_ids: int | Sequence[int] | None = None,
+    ) -> AssignmentRecord:
+        """The record :meth:`assign` would return for ``obs``, without changing any state.
+
+        Unlike :meth:`assign`, any number of frames is accepted (a query, not episodes).
+        """
+        record, t0 = self._plan(obs, episode_indices, group_ids, strict=False)
+        record.wall_time_ms = (time.perf_counter() - t0) * 1e3
+        return record
+
+    def assign(
+        self,
+        obs: dict[str, np.ndarray],
+        *,
+        episode_indices: Sequence[int] | None = None,
+        group_ids: int | Sequence[int] | None = None,
+    ) -> AssignmentRecord:
+        """Assign the episodes behind ``obs`` (their first-k frames) to a policy; see the module doc.
+
+        The chosen policy becomes :attr:`current_policy_id` and its buffer takes ``obs``.
+        """
+        record, t0 = self._plan(obs, episode_indices, group_ids)
+        pid = record.policy_id
+        if record.new:
+            seq = np.random.SeedSequence([self.seed, pid])
+            self.entries[pid] = PolicyEntry(
+                policy_id=pid,
+                buffer=ObservationBuffer(self.buffer_size, self.replacement, seed=seq),
+                created_at_episode=record.episode_indices[0],
+                created_at_assignment=record.index,
+                created_at_time=record.time_unix,
+            )
+        entry = self.entries[pid]
+        if self.mode == "ground_truth" and record.true_groups is not None and record.decision != "recall_at_cap":
+            self.group_policy[batch_group(record.true_groups)] = pid
+        entry.buffer.add(obs)
+        entry.episodes.extend(record.episode_indices)
+        self.episode_policy.update((e, pid) for e in record.episode_indices)
+        entry.assignments += 1
+        if record.true_groups is not None:
+            entry.group_counts.update(record.true_groups)
+            for e, g in zip(record.episode_indices, record.true_groups):
+                self.labels[e] = (pid, g)
+        self.next_episode = max(self.next_episode, max(record.episode_indices) + 1)
+        self.current_policy_id = pid
+        record.wall_time_ms = (time.perf_counter() - t0) * 1e3
+        self.history.append(record)
+        return record
+
+    def record_episode_stats(
+        self,
+        policy_id: int,
+        success: float | None = None,
+        ret: float | None = None,
+        group_id: int | None = None,
+        episode_index: int | None = None,
+    ) -> None:
+        """Report one finished episode of ``policy_id`` (latest success and return per policy).
+
+        With both ``group_id`` and ``episode_index``, an episode not yet labelled (one run between
+        assignment steps) joins the metrics as a (policy, group) pair.
+        """
+        if policy_id not in self.entries:
+            raise ValueError(f"unknown policy_id {policy_id!r}; the bank holds {self.policy_ids}")
+        entry = self.entries[policy_id]
+        for name, v in (("success", success), ("ret", ret)):
+            if v is not None and (not isinstance(v, (int, float, np.number)) or not math.isfinite(float(v))):
+                raise ValueError(f"{name} must be a finite number or None, got {v!r}")
+        entry.episodes_reported += 1
+        entry.last_success = None if success is None else float(success)
+        entry.last_return = None if ret is None else float(ret)
+        if group_id is not None and episode_index is not None:
+            e = check_int("episode_index", episode_index, 0)
+            if e not in self.labels:
+                g = check_int("group_id", group_id, 0)
+                self.labels[e] = (int(policy_id), g)
+                entry.group_counts[g] += 1
+                self.next_episode = max(self.next_episode, e + 1)
+
+    # ---- metrics ----------------------------------------------------------------------------------
+    def label_pairs(self) -> tuple[list[int], list[int]]:
+        """(policy ids, true group ids) of every labelled episode, in episode order."""
+        keys = sorted(self.labels)
+        return [self.labels[e][0] for e in keys], [self.labels[e][1] for e in keys]
+
+    def metrics(self) -> dict[str, Any]:
+        """ARI over every labelled episode so far, per-policy counts, and the confusion table."""
+        policies, groups = self.label_pairs()
+        return {
+            "ari": adjusted_rand_index(policies, groups),
+            "episodes_labelled": len(policies),
+            "policy_counts": {str(k): v for k, v in policy_counts(policies).items()},
+            "confusion": confusion_table(policies, groups),
+        }
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-safe overview: settings, current policy, every entry, and the metrics."""
+        return {
+            "metric": self.metric,
+            "threshold": self.threshold,
+            "mode": self.mode,
+            "feature_norm": self.feature_norm,
+            "buffer_size": self.buffer_size,
+            "replacement": self.replacement,
+            "max_policies": self.max_policies,
+            "num_policies": len(self.entries),
+            "current_policy_id": self.current_policy_id,
+            "assignments": len(self.history),
+            "policies": [self.entries[p].summary() for p in self.policy_ids],
+            "metrics": self.metrics(),
+        }
+
+    # ---- persistence (see covers_dist.clustering.persistence) -----------------------------------------
+    def save(self, directory: str) -> None:
+        """Write the whole state to ``directory`` atomically (see :mod:`.persistence`)."""
+        from .persistence import save_bank
+
+        save_bank(self, directory)
+
+    @classmethod
+    def load(cls, directory: str, feature_fn: FeatureFn | None = None, config: Any = None) -> "PolicyBank":
+        """Restore a bank saved by :meth:`save`; ``config`` (optional) must match its settings."""
+        from .persistence import load_bank
+
+        return load_bank(directory, feature_fn=feature_fn, config=config)
