@@ -24,8 +24,11 @@ $(STAMP): requirements/lock.txt pyproject.toml scripts/install_system_deps.sh
 	$(VENV)/bin/python -c "import covers_dist, escnn, metaworld, ray, ot, fastapi, torch; print('covers-dist installed in $(VENV)')"
 	touch $(STAMP)
 
+# trains COVERS on the smoke stream (a finished demo run is reused: --resume returns at once)
 demo: install
-	$(VENV)/bin/covers-dist demo
+	if [ -d runs/smoke/checkpoints ]; then $(VENV)/bin/covers-dist train --resume runs/smoke; \
+	else $(VENV)/bin/covers-dist train --config configs/smoke.yaml --run-dir runs/smoke; fi
+	$(VENV)/bin/covers-dist plot runs/smoke
 
 test: install
 	$(VENV)/bin/python -m pytest

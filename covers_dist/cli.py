@@ -15,6 +15,8 @@ import sys
 
 from . import __version__
 from .config import ConfigError
+from .clustering.persistence import CheckpointError as BankCheckpointError
+from .runtime.checkpoint import CheckpointError
 
 
 def _discover(package: str) -> list:
@@ -56,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except ConfigError as e:
         print(f"covers-dist: config error: {e}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, FileExistsError, CheckpointError, BankCheckpointError) as e:
+        print(f"covers-dist: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("covers-dist: interrupted", file=sys.stderr)

@@ -96,7 +96,7 @@ class NetworkConfig:
     kind: Literal["equivariant", "cnn"] = _f("equivariant", "Feature extractor: escnn equivariant or plain CNN.")
     group: GroupName = _f("D4", "Group the equivariant encoder is built for.")
     channels: list[int] = _f(
-        [2, 4, 8, 16],
+        [4, 8, 8, 16],
         "Regular fields per conv block; each block halves the image (CNN twin: channels scaled by cnn_width).",
     )
     hidden: int = _f(

@@ -22,6 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--address", help="Ray cluster address (default: start a local instance on 127.0.0.1)")
     p.add_argument("--serial", action="store_true", help="run every component in this process (no Ray)")
     p.add_argument("--run-dir", help="override runtime.run_dir")
+    p.add_argument("--overwrite", action="store_true", help="start over in a run directory that holds a run")
     p.set_defaults(func=run)
 
 
@@ -39,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
             args.overrides.append("runtime.serial=true")
         if args.run_dir:
             args.overrides.append(f"runtime.run_dir={args.run_dir}")
-        result = train(config_from_args(args))
+        result = train(config_from_args(args), overwrite=args.overwrite)
     keys = ("status", "checkpoint", "ari", "num_policies", "policy_counts")
     print(json.dumps({k: result.get(k) for k in keys}, default=str))
     return 0

@@ -18,6 +18,7 @@ Checkpoints are written every ``runtime.checkpoint_every`` iterations and on SIG
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import time
 from contextlib import contextmanager
@@ -253,14 +254,33 @@ class Trainer:
         self.backend.shutdown()
 
 
-def train(cfg: Config | None = None, resume_dir: str | None = None, log: Callable[[str], None] = print) -> dict:
-    """Run training to the end (or resume ``resume_dir``); starts Ray when the config asks for it."""
+def train(
+    cfg: Config | None = None,
+    resume_dir: str | None = None,
+    log: Callable[[str], None] = print,
+    overwrite: bool = False,
+) -> dict:
+    """Run training to the end (or resume ``resume_dir``); starts Ray when the config asks for it.
+
+    A new run refuses a run directory that already holds checkpoints unless ``overwrite``.
+    """
     if resume_dir is not None:
         cfg_path = Path(resume_dir) / "config.yaml"
         if not cfg_path.is_file():
             raise FileNotFoundError(f"{resume_dir} is not a run directory (no config.yaml)")
         cfg = load_config(cfg_path)
     assert cfg is not None
+    run_dir = Path(cfg.runtime.run_dir)
+    if resume_dir is None and (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").iterdir()):
+        if not overwrite:
+            raise FileExistsError(
+                f"{run_dir} already holds a run: continue it with --resume {run_dir}, "
+                "choose another --run-dir, or pass --overwrite to start over"
+            )
+        for name in ("checkpoints", "clustering_live", "tb"):
+            shutil.rmtree(run_dir / name, ignore_errors=True)
+        for name in ("metrics.jsonl", "episodes.jsonl"):
+            (run_dir / name).unlink(missing_ok=True)
     started = False
     if not cfg.runtime.serial:
         from .ray_setup import init_ray, shutdown_ray
@@ -268,9 +288,17 @@ def train(cfg: Config | None = None, resume_dir: str | None = None, log: Callabl
         init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address, cfg.runtime.num_gpus or None)
         started = True
     trainer = Trainer(cfg, resume=resume_dir is not None, log=log)
+    api = None
     try:
+        if cfg.api.enabled:
+            from ..api import start_api_server
+
+            api = start_api_server(cfg, trainer.backend.clustering)
+            log(f"HTTP service: {api.url} (e.g. curl {api.url}/v1/assignment; docs at {api.url}/docs)")
         return trainer.run()
     finally:
+        if api is not None:
+            api.stop()
         trainer.close()
         if started:
             shutdown_ray()
