@@ -70,7 +70,6 @@ def _free_port():
         return s.getsockname()[1]
 
 
-@pytest.mark.slow
 def test_ray_job_submit_against_a_local_head(tmp_path):
     import secrets
 

@@ -27,7 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--checkpoint", metavar="RUN_DIR", help="serve the newest valid checkpoint of RUN_DIR (read-only)")
+    where.add_argument(
+        "--checkpoint", metavar="RUN_DIR", help="serve the newest valid checkpoint of RUN_DIR (read-only)"
+    )
     where.add_argument("--address", metavar="RAY_ADDRESS", help="Ray cluster address of a running training job")
     p.add_argument("--name", metavar="RUN_NAME", help="run name (config `name`) of the job at --address")
     p.add_argument("--actor", help="full name of the clustering actor (default: covers-clustering-RUN_NAME)")

@@ -3,7 +3,7 @@
 * rollout workers: one CPU each, restarted automatically (``max_restarts``) and their calls
   retried (``max_task_retries``); a retried call returns the same episodes (they are seeded by
   episode index), so nothing is lost or doubled;
-* the clustering actor: named ``covers-clustering-<run name>``, no CPU reserved (it is light),
+* the clustering actor: named ``covers-clustering-<run name>`` in namespace ``covers-dist``, no CPU reserved (it is light),
   restarted from its persisted state, with assignments made idempotent by iteration number;
 * learners: one per policy, on a GPU when ``runtime.num_gpus > 0``.
 """
@@ -23,6 +23,8 @@ from .rollout import RolloutWorker
 __all__ = ["rollout_actor", "clustering_actor", "learner_actor", "clustering_actor_name"]
 
 MAX_RESTARTS = 8
+#: Ray namespace of the named clustering actor (so services can find it from any job).
+ACTOR_NAMESPACE = "covers-dist"
 
 
 class _RolloutHost(RolloutWorker):
@@ -48,7 +50,9 @@ def clustering_actor_name(cfg: Config) -> str:
 def clustering_actor(cfg: Config, run_dir: str) -> Any:
     """Create (or get) the named clustering actor of this run."""
     cls = ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)(ClusteringService)
-    return cls.options(name=clustering_actor_name(cfg), get_if_exists=True, lifetime=None).remote(cfg, run_dir)
+    return cls.options(
+        name=clustering_actor_name(cfg), namespace=ACTOR_NAMESPACE, get_if_exists=True, lifetime=None
+    ).remote(cfg, run_dir)
 
 
 def learner_actor(cfg: Config) -> Any:

@@ -27,7 +27,7 @@ import torch
 
 from ..clustering import PolicyBank
 from ..clustering.features import SharedFeatures
-from ..config import Config
+from ..config import Config, config_to_dict
 from ..envs import suite_layout
 from ..models import build_actor_critic
 from .learner import policy_seed
@@ -73,10 +73,11 @@ class ClusteringService:
     def _own_features(self, policy_id: int, obs: dict[str, np.ndarray]) -> np.ndarray:
         model = self.models.get(policy_id)
         if model is None:
-            raise ValueError(f"no weights received yet for policy {policy_id}")
+            raise LookupError(f"no weights received yet for policy {policy_id}")
         return model.features_np(obs)
 
-    def _sync_weights(self, weights_map: dict[int, tuple[int, Any]]) -> None:
+    def sync_weights(self, weights_map: dict[int, tuple[int, Any]]) -> None:
+        """Load ``{policy id: (version, weights)}``; only versions not loaded yet are fetched."""
         for pid, (version, handle) in weights_map.items():
             pid = int(pid)
             if self.versions.get(pid) == version:
@@ -110,7 +111,7 @@ class ClusteringService:
                 # a retried call (e.g. after this actor restarted): the bank already holds it
                 self.last_iteration, self.last_record = iteration, history[-1].to_dict()
                 return self.last_record
-            self._sync_weights(weights_map)
+            self.sync_weights(weights_map)
             record = self.bank.assign(obs, episode_indices=episode_indices, group_ids=group_ids).to_dict()
             self.last_iteration = iteration
             self.last_record = record
@@ -183,6 +184,10 @@ class ClusteringService:
     def ping(self) -> int:
         return os.getpid()
 
+    def config(self) -> dict[str, Any]:
+        """The run's config as a plain dict (for services that attach to a running job)."""
+        return config_to_dict(self.cfg)
+
     # ---- persistence ---------------------------------------------------------------------------
     def _service_state(self) -> dict[str, Any]:
         return {"last_iteration": self.last_iteration, "last_record": self.last_record, "progress": self.progress}
@@ -214,7 +219,7 @@ class ClusteringService:
                 self.progress = state.get("progress", {})
             self.versions.clear()
             for pid, w in (weights or {}).items():
-                self._sync_weights({int(pid): (-1, w)})
+                self.sync_weights({int(pid): (-1, w)})
             if not self.read_only and self.run_dir is not None and path != self.run_dir / LIVE_DIR:
                 self._persist()
 

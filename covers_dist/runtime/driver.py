@@ -63,6 +63,7 @@ class Trainer:
         self.phase_time: dict[str, float] = {}
         self._stop = False
         self._last_rows: list[dict[str, Any]] = []
+        self._t_start, self._steps_at_start = time.monotonic(), 0
         self._resume_from: Path | None = None
         if resume:
             self._resume_from = latest_valid_checkpoint(self.run_dir, log=self.log)
@@ -95,9 +96,12 @@ class Trainer:
         return [specs[w::n] for w in range(n)]
 
     def _publish(self, policy_id: int, weights: Any) -> None:
+        """New weights to the object store under a new version; the clustering service (features,
+        the HTTP service's act) loads them now, workers when they next sample with them."""
         self.weight_version += 1
         self.versions[policy_id] = self.weight_version
         self.handles[policy_id] = self.backend.publish(weights)
+        self.backend.call_clustering("sync_weights", {policy_id: (self.weight_version, self.handles[policy_id])})
 
     def _new_policy(self, policy_id: int) -> None:
         self.backend.ensure_learner(policy_id)
@@ -137,12 +141,17 @@ class Trainer:
         self.next_episode += len(summaries)
         self.env_steps += sum(s["length"] for s in summaries)
         self.iteration += 1
+        batch_success: dict[str, list[float]] = {}
+        batch_return: dict[str, list[float]] = {}
         for s in summaries:
-            self.success[s["task"]] = s["success"]
-            self.returns[s["task"]] = s["return"]
-        return self._row(record, stats, summaries)
+            batch_success.setdefault(s["task"], []).append(s["success"])
+            batch_return.setdefault(s["task"], []).append(s["return"])
+        for task in batch_success:  # the latest batch of each task group seen so far
+            self.success[task] = float(np.mean(batch_success[task]))
+            self.returns[task] = float(np.mean(batch_return[task]))
+        return self._row(record, stats)
 
-    def _row(self, record: dict[str, Any], stats: dict[str, Any], summaries: list[dict]) -> dict[str, Any]:
+    def _row(self, record: dict[str, Any], stats: dict[str, Any]) -> dict[str, Any]:
         metrics = self.backend.call_clustering("metrics")
         dists = [d for d in record.get("distances", {}).values() if d is not None]
         row: dict[str, Any] = {
@@ -154,16 +163,12 @@ class Trainer:
             M.ARI: metrics.get("ari", float("nan")),
             M.NEW_POLICY: bool(record.get("new", False)),
             M.DISTANCE_MIN: min(dists) if dists else float("nan"),
+            M.STEPS_PER_S: (self.env_steps - self._steps_at_start) / max(time.monotonic() - self._t_start, 1e-9),
             "wall_time": time.time(),
         }
-        batch_success: dict[str, list[float]] = {}
-        batch_return: dict[str, list[float]] = {}
-        for s in summaries:
-            batch_success.setdefault(s["task"], []).append(s["success"])
-            batch_return.setdefault(s["task"], []).append(s["return"])
-        for task in batch_success:
-            row[f"{M.SUCCESS}/{task}"] = float(np.mean(batch_success[task]))
-            row[f"{M.RETURN}/{task}"] = float(np.mean(batch_return[task]))
+        for task in self.success:
+            row[f"{M.SUCCESS}/{task}"] = self.success[task]
+            row[f"{M.RETURN}/{task}"] = self.returns[task]
         for name, secs in self.phase_time.items():
             row[f"{M.TIME}/{name}"] = secs
         for key, value in stats.items():
@@ -227,6 +232,7 @@ class Trainer:
             else:
                 self._new_policy(0)
             progress = Progress(self.cfg.runtime.total_env_steps, self.cfg.runtime.log_every_s, self.env_steps)
+            self._t_start, self._steps_at_start = time.monotonic(), self.env_steps
             row: dict[str, Any] = {}
             while self.env_steps < self.cfg.runtime.total_env_steps and not self._stop:
                 row = self.step()

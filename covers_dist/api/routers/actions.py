@@ -1,0 +1,34 @@
+"""``POST /v1/act``: the action of a policy (default: the current one) for one observation."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, HTTPException
+
+from ..deps import ERROR_RESPONSES, ApiState, api_state, call_source, require_token
+from ..observations import ObservationError, decode_observations
+from ..schemas import ActRequest, ActResult, ErrorBody
+from ..snapshot import json_safe
+
+router = APIRouter(prefix="/v1", tags=["actions"], dependencies=[Depends(require_token)])
+
+
+@router.post(
+    "/act",
+    response_model=ActResult,
+    summary="The action of a policy for one observation",
+    description="Deterministic (the Gaussian's mean) unless `deterministic` is false.",
+    responses={**ERROR_RESPONSES, 404: {"model": ErrorBody, "description": "Unknown policy, or no policy yet."}},
+)
+async def act(body: ActRequest, state: ApiState = Depends(api_state)) -> ActResult:
+    try:
+        obs = decode_observations([body.observation], state.layout)
+    except ObservationError as e:
+        raise HTTPException(422, str(e)) from None
+    out = await call_source(state, "act", obs, body.policy_id, body.deterministic)
+    out = json_safe(out)
+    return ActResult(
+        policy_id=int(out["policy_id"]),
+        action=list(out["action"][0]),
+        value=out["value"][0],
+        deterministic=body.deterministic,
+    )

@@ -1,0 +1,144 @@
+"""``GET /v1/metrics`` (JSON) and ``GET /metrics`` (Prometheus text format): training progress,
+clustering quality, and the service's own request counters."""
+
+from __future__ import annotations
+
+from typing import Any, Iterator
+
+from fastapi import APIRouter, Depends, Response
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.registry import Collector
+
+from ..deps import ERROR_RESPONSES, ApiState, api_state, current_snapshot, require_token, snapshot_json
+from ..schemas import TrainingMetrics
+from ..snapshot import Snapshot, SnapshotCache
+
+router = APIRouter(tags=["metrics"], dependencies=[Depends(require_token)])
+
+SUCCESS, RETURN = "success/", "return/"
+
+
+def _num(v: Any) -> float | int | None:
+    return v if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def training_metrics(snap: Snapshot) -> TrainingMetrics:
+    """The JSON metrics view of a snapshot."""
+    m = snap.metrics
+    progress: dict[str, Any] = dict(m.get("progress") or {})
+
+    per_task = {**snap.per_task, **{k: v for k, v in progress.items() if k.startswith((SUCCESS, RETURN))}}
+
+    def num(key: str) -> Any:
+        return _num(progress.get(key))
+
+    def as_int(key: str) -> int | None:
+        v = num(key)
+        return None if v is None else int(v)
+
+    return TrainingMetrics(
+        iteration=as_int("iteration"),
+        episodes=as_int("episodes"),
+        env_steps=as_int("env_steps"),
+        env_steps_per_s=snap.env_steps_per_s,
+        ari=m.get("ari"),
+        episodes_labelled=m.get("episodes_labelled"),
+        num_policies=int(m.get("num_policies", 0)),
+        current_policy_id=m.get("current_policy_id"),
+        success={k[len(SUCCESS) :]: _num(v) for k, v in sorted(per_task.items()) if k.startswith(SUCCESS)},
+        returns={k[len(RETURN) :]: _num(v) for k, v in sorted(per_task.items()) if k.startswith(RETURN)},
+        policy_counts={str(k): int(v) for k, v in (m.get("policy_counts") or {}).items()},
+        confusion=m.get("confusion") or {},
+        progress=progress,
+        as_of=snap.as_of,
+    )
+
+
+@router.get("/v1/metrics", response_model=TrainingMetrics, summary="Training metrics (JSON)", responses=ERROR_RESPONSES)
+async def metrics_json(snap: Snapshot = Depends(current_snapshot)) -> Response:
+    return snapshot_json(snap, "metrics", lambda: training_metrics(snap))
+
+
+@router.get(
+    "/metrics",
+    summary="Training metrics and request counters in Prometheus text format",
+    response_class=Response,
+    responses={
+        200: {"content": {CONTENT_TYPE_LATEST: {}}, "description": "Prometheus exposition format."},
+        **{k: v for k, v in ERROR_RESPONSES.items() if k in (401,)},
+    },
+)
+async def metrics_prometheus(state: ApiState = Depends(api_state)) -> Response:
+    registry: CollectorRegistry = state.prometheus  # type: ignore[attr-defined]
+    return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+
+class TrainingCollector(Collector):
+    """Gauges read from the latest snapshot at scrape time."""
+
+    def __init__(self, cache: SnapshotCache) -> None:
+        self.cache = cache
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        snap = self.cache.latest
+        if snap is None:
+            return
+        t = training_metrics(snap)
+        for name, value, doc in (
+            ("covers_iteration", t.iteration, "Update steps done."),
+            ("covers_episodes", t.episodes, "Episodes run."),
+            ("covers_env_steps", t.env_steps, "Environment steps run."),
+            ("covers_env_steps_per_second", t.env_steps_per_s, "Environment steps per second."),
+            ("covers_ari", t.ari, "Adjusted Rand Index between policy ids and true task groups."),
+            ("covers_num_policies", t.num_policies, "Policies in the bank."),
+            ("covers_current_policy_id", t.current_policy_id, "Id of the policy being trained."),
+            ("covers_snapshot_age_seconds", self.cache.age_s(), "Age of the state served."),
+        ):
+            if value is not None:
+                yield GaugeMetricFamily(name, doc, value=float(value))
+        for name, values, doc in (
+            ("covers_success", t.success, "Latest success rate per base task."),
+            ("covers_return", t.returns, "Latest average return per base task."),
+        ):
+            g = GaugeMetricFamily(name, doc, labels=["task"])
+            for task, v in values.items():
+                if v is not None:
+                    g.add_metric([task], float(v))
+            yield g
+        episodes = GaugeMetricFamily("covers_policy_episodes", "Episodes assigned per policy.", labels=["policy"])
+        buffers = GaugeMetricFamily(
+            "covers_policy_buffer_size", "Initial observations held per policy.", labels=["policy"]
+        )
+        for p in snap.summary.get("policies", []):
+            episodes.add_metric([str(p["policy_id"])], float(p.get("episodes_assigned", 0)))
+            buffers.add_metric([str(p["policy_id"])], float(p.get("buffer_size", 0)))
+        yield episodes
+        yield buffers
+
+
+class RequestMetrics:
+    """Request counters and latencies of the service itself."""
+
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self.requests = Counter(
+            "covers_api_requests", "HTTP requests answered.", ["method", "route", "status"], registry=registry
+        )
+        self.latency = Histogram(
+            "covers_api_request_duration_seconds",
+            "Time to answer an HTTP request.",
+            ["method", "route"],
+            buckets=(0.001, 0.0025, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 10.0),
+            registry=registry,
+        )
+
+    def observe(self, method: str, route: str, status: int, seconds: float) -> None:
+        self.requests.labels(method, route, str(status)).inc()
+        self.latency.labels(method, route).observe(seconds)
+
+
+def make_registry(cache: SnapshotCache) -> tuple[CollectorRegistry, RequestMetrics]:
+    """A registry for one app: training gauges plus request metrics."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(TrainingCollector(cache))
+    return registry, RequestMetrics(registry)
