@@ -15,8 +15,7 @@ import sys
 
 from . import __version__
 from .config import ConfigError
-from .clustering.persistence import CheckpointError as BankCheckpointError
-from .runtime.checkpoint import CheckpointError
+from .clustering.persistence import CheckpointError
 
 
 def _discover(package: str) -> list:
@@ -59,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"covers-dist: config error: {e}", file=sys.stderr)
         return 2
-    except (FileNotFoundError, FileExistsError, CheckpointError, BankCheckpointError) as e:
+    except (FileNotFoundError, FileExistsError, CheckpointError) as e:
         print(f"covers-dist: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -165,7 +165,10 @@ class RuntimeConfig:
     ray_address: str | None = _f(None, "Address of a running Ray cluster (null: start a local one).")
     run_dir: str = _f("runs/latest", "Directory for metrics, checkpoints and plots.")
     checkpoint_every: int = _f(10, "Update steps between checkpoints.", min=1)
-    torch_threads: int = _f(1, "torch intra-op threads per process.", min=1)
+    torch_threads: int = _f(1, "torch intra-op threads per rollout worker and clustering process.", min=1)
+    learner_threads: int = _f(
+        2, "torch intra-op threads per learner (updates run while the workers wait, so they may use the cores).", min=1
+    )
     log_every_s: float = _f(5.0, "Seconds between console progress lines.", gt=0.0)
 
 

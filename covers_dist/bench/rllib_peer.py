@@ -20,7 +20,7 @@ __all__ = ["ImageOnlyTask", "build_rllib_ppo"]
 
 
 class ImageOnlyTask(gym.Env):
-    """A covers-dist task with only the image as observation (RLlib's default CNN input)."""
+    """A covers-dist task with only the image (as floats in [0, 1]) as observation."""
 
     metadata = {"render_modes": []}
 
@@ -31,19 +31,24 @@ class ImageOnlyTask(gym.Env):
         cfg = config_from_dict(env_config["config"])
         self.inner = make_task(cfg.env, env_config["task"], "e")
         size = cfg.env.image_size
-        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
+        # RLlib's CNN encoder takes float input: the same image scaled to [0, 1]
+        self.observation_space = gym.spaces.Box(0.0, 1.0, (size, size, 3), np.float32)
         self.action_space = self.inner.action_space
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         obs, info = self.inner.reset(seed=seed)
-        return obs["image"], info
+        return _scaled(obs["image"]), info
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.inner.step(action)
-        return obs["image"], reward, terminated, truncated, info
+        return _scaled(obs["image"]), reward, terminated, truncated, info
 
     def close(self) -> None:
         self.inner.close()
+
+
+def _scaled(image: np.ndarray) -> np.ndarray:
+    return image.astype(np.float32) * (1.0 / 255.0)
 
 
 def build_rllib_ppo(cfg: Config) -> Any:

@@ -6,6 +6,9 @@ same image size, with a CNN of comparable size, sampling with the same number of
 envs per runner. Also reports the sampling phase's speed-up from 1 to 2 workers and the peak
 resident memory of all processes of the run (driver + every Ray process), sampled every 0.2 s.
 
+A third setting runs the loop with the CNN twin (``covers-cnn``), whose compute per sample is
+close to RLlib's CNN, so that the runtime is compared with the network cost held comparable.
+
 Targets (reported, not asserted): end-to-end steps/s >= 2x RLlib's; sampling with 2 workers
 >= 1.7x with 1; peak memory <= 4 GiB.
 """
@@ -32,11 +35,12 @@ class PeakMemory:
     def __init__(self, marker: str | None) -> None:
         self.marker = marker
         self.peak = 0
+        self.processes = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _rss(self) -> int:
-        total = 0
+        total, count = 0, 0
         page = os.sysconf("SC_PAGE_SIZE")
         for entry in Path("/proc").iterdir():
             if not entry.name.isdigit():
@@ -48,8 +52,10 @@ class PeakMemory:
                     mine = self.marker.encode() in cmd
                 if mine:
                     total += int((entry / "statm").read_text().split()[1]) * page
+                    count += 1
             except (OSError, ValueError):
                 continue
+        self.processes = max(self.processes, count)
         return total
 
     def _run(self) -> None:
@@ -78,6 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _covers(cfg_path: str, overrides: list[str], workers: int, iters: int, warmup: int) -> dict[str, float]:
+    """The COVERS loop on a local Ray instance; memory covers every process of that instance."""
     import ray
 
     from ..runtime.driver import Trainer
@@ -86,10 +93,10 @@ def _covers(cfg_path: str, overrides: list[str], workers: int, iters: int, warmu
     run_dir = tempfile.mkdtemp(prefix="covers-bench-")
     cfg = load_config(cfg_path, [*overrides, f"runtime.num_workers={workers}", f"runtime.run_dir={run_dir}"])
     init_ray(cfg.runtime.num_cpus)
-    marker = ray.get_runtime_context().gcs_address.split(":")[-1]
+    session_dir = ray._private.worker.global_worker.node.get_session_dir_path()
     trainer = Trainer(cfg, log=lambda *_: None)
     try:
-        with PeakMemory(f"gcs-address=127.0.0.1:{marker}") as mem:
+        with PeakMemory(str(Path(session_dir).parent)) as mem:
             trainer._new_policy(0)
             for _ in range(warmup):
                 trainer.step()
@@ -106,7 +113,9 @@ def _covers(cfg_path: str, overrides: list[str], workers: int, iters: int, warmu
         "env_steps_per_s": steps / elapsed,
         "sample_steps_per_s": steps / sample_s,
         "peak_rss_gib": mem.peak / GIB,
+        "processes": mem.processes,
         "env_steps": steps,
+        "update_s_per_iter": trainer.phase_time.get("update", 0.0),
     }
 
 
@@ -137,12 +146,14 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("covers-dist bench train: --iterations must be >= 1 and --warmup >= 0")
     cfg = load_config(args.config, args.overrides)
     out: dict[str, Any] = {"config": args.config, "task": cfg.env.tasks[0], "image_size": cfg.env.image_size}
-    for workers in (1, 2):
-        r = _covers(args.config, args.overrides, workers, args.iterations, args.warmup)
-        out[f"covers_{workers}w"] = {k: round(v, 3) for k, v in r.items()}
+    cnn = ["runtime.method=covers-cnn", "network.kind=cnn"]
+    for name, workers, extra in (("covers_1w", 1, []), ("covers_2w", 2, []), ("covers_cnn_2w", 2, cnn)):
+        r = _covers(args.config, [*args.overrides, *extra], workers, args.iterations, args.warmup)
+        out[name] = {k: round(v, 3) for k, v in r.items()}
         if not args.json:
-            print(f"covers-dist, {workers} worker(s): {r['env_steps_per_s']:.0f} env steps/s end to end, "
-                  f"{r['sample_steps_per_s']:.0f} in sampling, peak RSS {r['peak_rss_gib']:.2f} GiB", flush=True)
+            print(f"{name}: {r['env_steps_per_s']:.0f} env steps/s end to end, "
+                  f"{r['sample_steps_per_s']:.0f} in sampling, peak RSS {r['peak_rss_gib']:.2f} GiB "
+                  f"over {r['processes']} processes", flush=True)
     out["sampling_speedup_2w_vs_1w"] = round(
         out["covers_2w"]["sample_steps_per_s"] / out["covers_1w"]["sample_steps_per_s"], 3
     )
@@ -151,5 +162,6 @@ def run(args: argparse.Namespace) -> int:
         rl = _rllib(args.config, args.overrides, args.iterations, args.warmup)
         out["rllib_ppo"] = {k: round(v, 3) for k, v in rl.items()}
         out["covers_to_rllib"] = round(out["covers_2w"]["env_steps_per_s"] / rl["env_steps_per_s"], 3)
+        out["covers_cnn_to_rllib"] = round(out["covers_cnn_2w"]["env_steps_per_s"] / rl["env_steps_per_s"], 3)
     print(json.dumps(out) if args.json else json.dumps(out, indent=1))
     return 0

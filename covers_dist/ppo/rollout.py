@@ -15,7 +15,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-__all__ = ["collect_episodes", "success_rate"]
+__all__ = ["collect_episodes", "run_lockstep", "success_rate"]
 
 
 def collect_episodes(
@@ -36,15 +36,30 @@ def collect_episodes(
     episodes: list[dict[str, Any]] = []
     for wave in range(0, num_episodes, len(envs)):
         active = envs[: min(len(envs), num_episodes - wave)]
-        episodes.extend(_run_wave(model, active, seed + wave, wave, generator, deterministic))
+        seeds = [seed + wave + i for i in range(len(active))]
+        wave_episodes = run_lockstep(model, active, seeds, generator, deterministic)
+        for i, ep in enumerate(wave_episodes):
+            ep["episode_index"] = wave + i
+        episodes.extend(wave_episodes)
     return episodes
 
 
-def _run_wave(
-    model: Any, envs: Sequence[Any], seed: int, first_index: int, generator: torch.Generator | None, deterministic: bool
+def run_lockstep(
+    model: Any,
+    envs: Sequence[Any],
+    seeds: Sequence[int],
+    generator: torch.Generator | None = None,
+    deterministic: bool = False,
 ) -> list[dict[str, Any]]:
+    """One full episode per env, stepped together (one batched ``model.act`` per step).
+
+    Env ``i`` is reset with ``seeds[i]``. Returns Episode dicts (with ``task`` and ``g`` read from
+    the envs); the rollout workers of the runtime add their own metadata.
+    """
     n = len(envs)
-    obs = [env.reset(seed=seed + i)[0] for i, env in enumerate(envs)]
+    if len(seeds) != n:
+        raise ValueError(f"need one seed per env, got {len(seeds)} seeds for {n} envs")
+    obs = [env.reset(seed=int(s))[0] for env, s in zip(envs, seeds)]
     logs: list[dict[str, list]] = [
         {"image": [o["image"]], "proprio": [o["proprio"]], "action": [], "logprob": [], "value": [], "reward": [],
          "success": []}
@@ -93,7 +108,6 @@ def _run_wave(
                 "truncated": ends[i][1],
                 "task": getattr(env, "task", None),
                 "g": getattr(getattr(env, "g", None), "name", None),
-                "episode_index": first_index + i,
             }
         )
     return episodes

@@ -25,14 +25,12 @@ import shutil
 from pathlib import Path
 from typing import Any, Callable
 
+from ..clustering.persistence import CheckpointError  # one error type for every checkpoint file
+
 __all__ = ["CheckpointError", "write_checkpoint", "latest_valid_checkpoint", "verify_checkpoint", "list_checkpoints"]
 
 FORMAT_VERSION = 1
 KEEP = 3
-
-
-class CheckpointError(ValueError):
-    """A checkpoint is missing, partial, corrupt or of another format version."""
 
 
 def _sha256(path: Path) -> str:

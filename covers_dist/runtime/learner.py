@@ -29,7 +29,6 @@ class PolicyLearner:
     """Owns one policy's network, its PPO optimizer and its weight version."""
 
     def __init__(self, cfg: Config, policy_id: int, device: str | None = None) -> None:
-        torch.set_num_threads(cfg.runtime.torch_threads)
         self.cfg = cfg
         self.policy_id = policy_id
         self.device = device or ("cuda" if cfg.runtime.num_gpus > 0 and torch.cuda.is_available() else "cpu")
@@ -45,7 +44,12 @@ class PolicyLearner:
     def update(self, episodes: list[Any]) -> tuple[dict[str, Any], int, dict[str, torch.Tensor]]:
         """One PPO update on the given episodes (lists of object references are resolved)."""
         flat = _resolve(episodes)
-        stats = self.ppo.update(flat)
+        threads = torch.get_num_threads()
+        torch.set_num_threads(self.cfg.runtime.learner_threads)
+        try:
+            stats = self.ppo.update(flat)
+        finally:
+            torch.set_num_threads(threads)
         self.version += 1
         stats["policy_id"] = self.policy_id
         stats["version"] = self.version

@@ -18,6 +18,7 @@ import torch
 from ..config import Config
 from ..envs import make_task, suite_layout
 from ..models import build_actor_critic
+from ..ppo.rollout import run_lockstep
 from ..symmetry import GroupElement
 
 __all__ = ["EpisodeSpec", "RolloutWorker", "episode_seed"]
@@ -106,65 +107,21 @@ class RolloutWorker:
     def _run_group(
         self, specs: list[EpisodeSpec], policy_id: int, version: int, deterministic: bool
     ) -> list[dict[str, Any]]:
-        n = len(specs)
         envs = [self._env(s.task, s.g, slot) for slot, s in enumerate(specs)]
         gen = torch.Generator().manual_seed(episode_seed(self.cfg.seed, specs[0].episode_index) % (2**63))
-        traj: list[dict[str, list]] = []
-        obs_now = []
-        for env, spec in zip(envs, specs):
-            obs, _ = env.reset(seed=episode_seed(self.cfg.seed, spec.episode_index))
-            obs_now.append(obs)
-            traj.append({k: [] for k in ("image", "proprio", "action", "logprob", "value", "reward", "success")})
-        done = [False] * n
-        ended = [(False, False)] * n
-        while not all(done):
-            live = [i for i in range(n) if not done[i]]
-            batch = {
-                "image": np.stack([obs_now[i]["image"] for i in live]),
-                "proprio": np.stack([obs_now[i]["proprio"] for i in live]),
-            }
-            actions, logps, values = self.model.act(batch, deterministic=deterministic, generator=gen)
-            for j, i in enumerate(live):
-                t = traj[i]
-                t["image"].append(obs_now[i]["image"])
-                t["proprio"].append(obs_now[i]["proprio"])
-                t["action"].append(actions[j])
-                t["logprob"].append(logps[j])
-                t["value"].append(values[j])
-                obs, reward, terminated, truncated, info = envs[i].step(actions[j])
-                t["reward"].append(reward)
-                t["success"].append(float(info.get("success", 0.0)))
-                obs_now[i] = obs
-                self.env_steps += 1
-                if terminated or truncated:
-                    done[i] = True
-                    ended[i] = (bool(terminated), bool(truncated))
-        # bootstrap values of the final observations (used only for truncated episodes)
-        final = {"image": np.stack([o["image"] for o in obs_now]), "proprio": np.stack([o["proprio"] for o in obs_now])}
-        _, _, final_values = self.model.act(final, deterministic=True)
-        out = []
-        for i, spec in enumerate(specs):
-            t = traj[i]
-            out.append(
-                {
-                    "image": np.stack(t["image"] + [obs_now[i]["image"]]).astype(np.uint8),
-                    "proprio": np.stack(t["proprio"] + [obs_now[i]["proprio"]]).astype(np.float32),
-                    "action": np.asarray(t["action"], dtype=np.float32),
-                    "logprob": np.asarray(t["logprob"], dtype=np.float32),
-                    "value": np.asarray(t["value"] + [final_values[i]], dtype=np.float32),
-                    "reward": np.asarray(t["reward"], dtype=np.float32),
-                    "success": np.asarray(t["success"], dtype=np.float32),
-                    "terminated": ended[i][0],
-                    "truncated": ended[i][1],
-                    "task": spec.task,
-                    "g": spec.g,
-                    "group_id": spec.group_id,
-                    "episode_index": spec.episode_index,
-                    "policy_id": policy_id,
-                    "policy_version": version,
-                }
+        seeds = [episode_seed(self.cfg.seed, s.episode_index) for s in specs]
+        episodes = run_lockstep(self.model, envs, seeds, gen, deterministic)
+        for ep, spec in zip(episodes, specs):
+            self.env_steps += len(ep["reward"])
+            ep.update(
+                task=spec.task,
+                g=spec.g,
+                group_id=spec.group_id,
+                episode_index=spec.episode_index,
+                policy_id=policy_id,
+                policy_version=version,
             )
-        return out
+        return episodes
 
     def stats(self) -> dict[str, int]:
         return {"worker_index": self.worker_index, "env_steps": self.env_steps, "weight_pulls": self.weight_pulls}
