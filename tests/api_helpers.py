@@ -48,7 +48,7 @@ def filled_service(cfg: Config, stream: list[tuple[str, str]], episodes: int = 4
         pid = int(record["policy_id"])
         if pid not in weights:
             weights[pid] = (1, policy_weights(cfg, pid))
-            service._sync_weights({pid: weights[pid]})
+            service.sync_weights({pid: weights[pid]})
         summaries = [
             {"policy_id": pid, "assigned_policy": pid, "success": float(i % 2), "return": 10.0 + i} for i in idx
         ]
