@@ -79,10 +79,14 @@ def test_ray_job_submit_against_a_local_head(tmp_path):
     token.write_text(secrets.token_hex(32))
     env = {**_env(), "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN_PATH": str(token)}
     port, dash = _free_port(), _free_port()
+    # own ports for every agent: another Ray instance (e.g. the suite's) may hold the defaults
+    agent_ports = [f"--dashboard-agent-listen-port={_free_port()}", f"--dashboard-agent-grpc-port={_free_port()}",
+                   f"--runtime-env-agent-port={_free_port()}", f"--metrics-export-port={_free_port()}",
+                   f"--ray-client-server-port={_free_port()}"]
     head = subprocess.run(
         [str(bindir / "ray"), "start", "--head", "--num-cpus", "2", "--node-ip-address=127.0.0.1",
          f"--port={port}", f"--dashboard-port={dash}", "--dashboard-host=127.0.0.1", "--include-dashboard=true",
-         f"--temp-dir={temp}", "--disable-usage-stats"],
+         f"--temp-dir={temp}", "--disable-usage-stats", *agent_ports],
         env=env, capture_output=True, text=True, timeout=120,
     )
     assert head.returncode == 0, head.stdout + head.stderr
