@@ -65,6 +65,8 @@ def make_plots(run_dir: str | Path, window: int = 10) -> list[Path]:
     metrics = _dedupe(_read_jsonl(run / "metrics.jsonl"), "iteration")
     if not episodes or not metrics:
         raise SystemExit(f"covers-dist plot: {run} has no episodes yet")
+    # env steps at the end of every episode (episodes of one iteration share a logged step count)
+    steps_at = dict(zip([e["episode_index"] for e in episodes], np.cumsum([e["length"] for e in episodes])))
     tasks = sorted({e["task"] for e in episodes}, key=lambda t: min(e["group_id"] for e in episodes if e["task"] == t))
     colors = {t: plt.cm.tab10(i % 10) for i, t in enumerate(tasks)}
     out: list[Path] = []
@@ -72,7 +74,7 @@ def make_plots(run_dir: str | Path, window: int = 10) -> list[Path]:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
     for t in tasks:
         rows = [e for e in episodes if e["task"] == t]
-        steps = np.array([e["env_steps"] for e in rows])
+        steps = np.array([steps_at[e["episode_index"]] for e in rows])
         axes[0].plot(steps, _moving(np.array([e["success"] for e in rows], float), window), label=t, color=colors[t])
         axes[1].plot(steps, _moving(np.array([e["return"] for e in rows], float), window), label=t, color=colors[t])
     axes[0].set(xlabel="env steps", ylabel=f"success (moving avg, {window} episodes)", ylim=(-0.05, 1.05))

@@ -254,7 +254,12 @@ class Trainer:
                 signal.signal(s, h)
 
     def _last_episode_rows(self) -> list[dict[str, Any]]:
-        return [{**s, M.ENV_STEPS: self.env_steps, M.ITERATION: self.iteration} for s in self._last_rows]
+        steps = self.env_steps - sum(s["length"] for s in self._last_rows)
+        rows = []
+        for s in self._last_rows:
+            steps += s["length"]
+            rows.append({**s, M.ENV_STEPS: steps, M.ITERATION: self.iteration})
+        return rows
 
     def close(self) -> None:
         self.backend.shutdown()
