@@ -37,7 +37,6 @@ from .rollout import EpisodeSpec
 
 __all__ = ["Trainer", "train"]
 
-SINGLE_POLICY_METHODS = ("equi", "cnn")
 
 
 class Trainer:
