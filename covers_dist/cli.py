@@ -39,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _discover("covers_dist.commands"):
         mod.register(sub)
-    bench = sub.add_parser("bench", help="benchmarks that print measured figures (see docs/benchmarks.md)")
+    bench = sub.add_parser("bench", help="benchmarks that print measured figures (tables in docs/, listed in the README)")
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH")
     for mod in _discover("covers_dist.bench"):
         mod.register(bench_sub)

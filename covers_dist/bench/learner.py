@@ -28,7 +28,6 @@ import time
 from typing import Any
 
 import numpy as np
-import torch
 
 from ..config import EnvConfig, NetworkConfig, PPOConfig, RuntimeConfig
 from ..symmetry import get_group
@@ -252,6 +251,8 @@ def _print_table(rows: list[dict[str, Any]]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch  # imported here: `covers-dist --help` should not pay for torch
+
     if args.samples < 1 or args.repeats < 1 or args.minibatch < 1 or args.threads < 1:
         raise SystemExit("covers-dist bench learner: --samples, --repeats, --minibatch and --threads must be >= 1")
     suites = [s.strip() for s in args.suites.split(",") if s.strip()]
