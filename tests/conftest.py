@@ -17,3 +17,14 @@ def ray_local():
     ray = init_ray(num_cpus=2)
     yield ray
     shutdown_ray()
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Small tensors on 2 shared cores: one intra-op thread is faster and reproducible."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

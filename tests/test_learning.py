@@ -27,14 +27,6 @@ NET = NetworkConfig(channels=[2, 4, 8, 16], hidden=32)  # narrow: cheap enough f
 PPO = dataclasses.replace(PPOConfig(), lr=1e-3)  # defaults otherwise (reward_scale 0.1, 4 epochs, ...)
 
 
-@pytest.fixture()
-def one_thread():
-    """One intra-op thread: reproducible, and faster for small tensors on 2 shared cores."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
 
 def train(kind: str, max_updates: int, seed: int = 0):
     """PPO on the untransformed task until two updates in a row succeed >= 0.9 (or the budget ends)."""
@@ -67,7 +59,7 @@ def evaluate(model, deterministic: bool, seed: int = 10**6) -> dict[str, float]:
     return rates
 
 
-def test_equivariant_policy_transfers_zero_shot_and_cnn_twin_does_not(one_thread):
+def test_equivariant_policy_transfers_zero_shot_and_cnn_twin_does_not(one_torch_thread):
     start = time.perf_counter()
     equi, equi_history = train("equivariant", max_updates=30)
     cnn, cnn_history = train("cnn", max_updates=len(equi_history))  # the same budget

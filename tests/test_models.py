@@ -20,13 +20,7 @@ LAYOUTS = {"toy32": toy_layout(32), "metaworld64": METAWORLD_LAYOUT}
 TOL = 1e-4
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Small tensors on 2 shared cores: one intra-op thread is faster and reproducible."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def random_obs(layout: ObsLayout, n: int, seed: int = 0) -> dict[str, np.ndarray]:

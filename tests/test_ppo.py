@@ -20,13 +20,7 @@ SMALL_NET = NetworkConfig(channels=[2, 2, 2, 2], hidden=4)
 LAYOUT = toy_layout(16)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Small tensors on 2 shared cores: one intra-op thread is faster and reproducible."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ---- GAE -------------------------------------------------------------------------------------

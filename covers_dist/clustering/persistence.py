@@ -47,7 +47,8 @@ class CheckpointError(ValueError):
     """A bank checkpoint is missing, corrupt, of another format version, or does not match."""
 
 
-def _sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
+    """Hex SHA-256 of a file, read in 1 MiB chunks (shared with the run checkpoints)."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
@@ -123,7 +124,7 @@ def save_bank(bank: PolicyBank, directory: str | os.PathLike) -> Path:
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
         "buffers_file": npz.name,
-        "buffers_sha256": _sha256(npz),
+        "buffers_sha256": file_sha256(npz),
         "state": state,
     }
     text = json.dumps(doc, allow_nan=False, sort_keys=True).encode()
@@ -165,7 +166,7 @@ def _read_arrays(directory: Path, doc: dict[str, Any]) -> dict[str, np.ndarray]:
     npz = directory / name
     if not npz.is_file():
         raise CheckpointError(f"bank checkpoint in {str(directory)!r} is incomplete: {name} is missing")
-    if _sha256(npz) != doc.get("buffers_sha256"):
+    if file_sha256(npz) != doc.get("buffers_sha256"):
         raise CheckpointError(f"{npz}: corrupt buffers (SHA-256 does not match {STATE_FILE})")
     try:
         with np.load(npz, allow_pickle=False) as z:

@@ -18,27 +18,18 @@ state-dict mode (see ``covers_dist.models``).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
 from pathlib import Path
 from typing import Any, Callable
 
-from ..clustering.persistence import CheckpointError  # one error type for every checkpoint file
+from ..clustering.persistence import CheckpointError, file_sha256  # one error type, one hash
 
 __all__ = ["CheckpointError", "write_checkpoint", "latest_valid_checkpoint", "verify_checkpoint", "list_checkpoints"]
 
 FORMAT_VERSION = 1
 KEEP = 3
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _files(root: Path) -> list[Path]:
@@ -59,7 +50,7 @@ def write_checkpoint(run_dir: str | Path, iteration: int, writer: Callable[[Path
         manifest = {
             "format_version": FORMAT_VERSION,
             "iteration": iteration,
-            "files": {str(p.relative_to(tmp)): _sha256(p) for p in _files(tmp)},
+            "files": {str(p.relative_to(tmp)): file_sha256(p) for p in _files(tmp)},
         }
         with open(tmp / "manifest.json", "w") as fh:
             json.dump(manifest, fh, indent=1)
@@ -102,7 +93,7 @@ def verify_checkpoint(path: str | Path) -> dict[str, Any]:
         f = path / rel
         if not f.is_file():
             raise CheckpointError(f"checkpoint {path.name}: file {rel} is missing")
-        if _sha256(f) != digest:
+        if file_sha256(f) != digest:
             raise CheckpointError(f"checkpoint {path.name}: file {rel} is corrupt (checksum mismatch)")
     return manifest
 

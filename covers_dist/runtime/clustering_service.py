@@ -31,6 +31,7 @@ from ..config import Config, config_to_dict
 from ..envs import suite_layout
 from ..models import build_actor_critic
 from .learner import policy_seed
+from .ray_setup import resolve_weights
 
 __all__ = ["ClusteringService"]
 
@@ -82,11 +83,7 @@ class ClusteringService:
             pid = int(pid)
             if self.versions.get(pid) == version:
                 continue
-            weights = handle
-            if isinstance(handle, list):
-                import ray
-
-                weights = ray.get(handle[0])
+            weights = resolve_weights(handle)
             if pid not in self.models:
                 self.models[pid] = build_actor_critic(self.cfg.network, self.layout)
             self.models[pid].set_weights(weights)

@@ -12,7 +12,7 @@ import os
 import tempfile
 from typing import Any
 
-__all__ = ["init_ray", "shutdown_ray"]
+__all__ = ["init_ray", "shutdown_ray", "resolve_weights"]
 
 _STARTED_HERE = False
 
@@ -59,3 +59,13 @@ def shutdown_ray() -> None:
     if ray.is_initialized() and _STARTED_HERE:
         ray.shutdown()
         _STARTED_HERE = False
+
+
+def resolve_weights(handle: Any) -> Any:
+    """Weights as published by a backend: a state dict (serial) or ``[object ref]`` (Ray; wrapped
+    in a list so that Ray passes the reference instead of resolving it for every call)."""
+    if isinstance(handle, list):
+        import ray
+
+        return ray.get(handle[0])
+    return handle

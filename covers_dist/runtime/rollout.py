@@ -20,6 +20,7 @@ from ..envs import make_task, suite_layout
 from ..models import build_actor_critic
 from ..ppo.rollout import run_lockstep
 from ..symmetry import GroupElement
+from .ray_setup import resolve_weights
 
 __all__ = ["EpisodeSpec", "RolloutWorker", "episode_seed"]
 
@@ -59,11 +60,7 @@ class RolloutWorker:
     def _ensure_weights(self, policy_id: int, version: int, weights: Any) -> None:
         if self._loaded == (policy_id, version):
             return
-        if isinstance(weights, list):  # an object reference wrapped so that Ray does not resolve it eagerly
-            import ray
-
-            weights = ray.get(weights[0])
-        self.model.set_weights(weights)
+        self.model.set_weights(resolve_weights(weights))
         self.model.eval()
         self._loaded = (policy_id, version)
         self.weight_pulls += 1
