@@ -12,6 +12,13 @@ generator (``reset(seed=...)``); no MT1 wrapper is involved, so nothing re-sampl
 a task behind the agent's back. Object and goal positions are available to tests and evaluation
 through :meth:`MetaWorldTask.task_state`, never in the observation.
 
+Every task is observable: what decides success is visible in the first observation. Where a
+task's spec holds a goal height (``goal_z``; Goal Reach, whose goal height Meta-World draws from
+0.05..0.3 m and a top-down image cannot show), the goal is moved to that height right after
+Meta-World's reset, everywhere Meta-World keeps it (``_target_pos``, the goal site, its own
+observation vector), before the agent sees anything. ``observable=False`` keeps Meta-World's
+sampling (for comparison in tests).
+
 Base tasks live in a registry (:data:`TASKS`); :func:`register_task` adds any other Meta-World
 v3 environment by name. Importing this module registers the ``metaworld`` suite with
 :func:`covers_dist.envs.register_suite`.
@@ -104,6 +111,8 @@ class MetaWorldTask(gym.Env):
     ``camera_shift`` / ``camera_shift_angle``: move the camera's (x, y) by ``camera_shift``
     metres in the direction ``camera_shift_angle`` degrees (counter-clockwise from +x), for
     robustness evaluation; the robot, the symmetry centre and the proprio do not move.
+    ``observable``: apply the spec's fixed goal height (``goal_z``) at every reset (the default);
+    ``False`` keeps Meta-World's own goal sampling, whose height the image cannot show.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 80}
@@ -118,6 +127,7 @@ class MetaWorldTask(gym.Env):
         camera_shift: float = 0.0,
         camera_shift_angle: float = 0.0,
         render_mode: str | None = None,
+        observable: bool = True,
     ) -> None:
         if task not in TASKS:
             raise ValueError(f"unknown Meta-World task {task!r}; expected one of {list(TASKS)}")
@@ -131,7 +141,10 @@ class MetaWorldTask(gym.Env):
             raise ValueError(f"camera_shift must be a finite distance >= 0 (metres), got {camera_shift!r}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if not isinstance(observable, bool):
+            raise TypeError(f"observable must be True or False, got {observable!r}")
         self.task, self.spec_entry = task, TASKS[task]
+        self.observable = observable
         self.g = GroupElement.from_name(g) if isinstance(g, str) else g
         if not isinstance(self.g, GroupElement):
             raise TypeError(f"g must be a GroupElement or an element name, got {g!r}")
@@ -155,6 +168,9 @@ class MetaWorldTask(gym.Env):
         self._mw.__dict__.pop("sawyer_observation_space", None)
         self._mw.max_path_length = self.max_episode_steps
         model = self._mw.model
+        self._goal_z = self.spec_entry.goal_z if observable else None
+        if self._goal_z is not None:
+            _check_goal_site(self._mw, self.spec_entry)
         apply_task_colors(model, self.spec_entry)
         robot, table = robot_bodies(model), table_geoms(model)
         angle = math.radians(camera_shift_angle)
@@ -196,13 +212,38 @@ class MetaWorldTask(gym.Env):
         mw_obs, _ = self._mw.reset()
         import mujoco
 
+        if self._goal_z is not None:
+            self._hold_goal_height(self._goal_z)
         mujoco.mj_forward(self._mw.model, self._mw.data)  # sites moved by reset_model take effect
+        if self._goal_z is not None:
+            mw_obs = self._mw_reset_obs()
         if hasattr(self._renderer, "invalidate"):
             self._renderer.invalidate()
         self._t = 0
         self._mw_obs = mw_obs
         obs = self._observation(mw_obs)
         return obs, {"success": 0.0}
+
+    def _hold_goal_height(self, z: float) -> None:
+        """Put the goal Meta-World just drew at height ``z``: the target that reward and success
+        read, the goal site that is drawn (and that Meta-World re-places from the target after
+        every step), and the reach distance Meta-World's v1 reward normalises by."""
+        mw = self._mw
+        target = np.array(mw._target_pos, dtype=np.float64)
+        target[2] = z
+        mw._target_pos = target
+        mw.model.site("goal").pos = target
+        if hasattr(mw, "maxReachDist"):
+            mw.maxReachDist = float(np.linalg.norm(mw.init_tcp - target))
+
+    def _mw_reset_obs(self) -> np.ndarray:
+        """Meta-World's observation vector of the current (just reset) state, built the way its
+        ``reset`` builds it: the previous frame equals the current one, the goal last."""
+        mw = self._mw
+        current = mw._get_curr_obs_combined_no_goal()
+        mw._prev_obs = current.copy()
+        goal = np.zeros(3) if mw._partially_observable else mw._get_pos_goal()
+        return np.hstack((current, current, goal)).astype(np.float64)
 
     def step(self, action: np.ndarray):
         if self._t < 0:
@@ -309,6 +350,22 @@ class MetaWorldTask(gym.Env):
     def unwrapped_metaworld(self) -> Any:
         """The underlying Meta-World environment (physics of the base task)."""
         return self._mw
+
+
+def _check_goal_site(mw: Any, spec: MetaWorldTaskSpec) -> None:
+    """A fixed goal height needs the goal to be the world-body site ``goal`` placed from
+    ``_target_pos`` (as in reach-v3); other goals (a button's hole, a drawer's handle) are derived
+    from bodies and cannot be moved alone."""
+    import mujoco
+    from metaworld.sawyer_xyz_env import SawyerXYZEnv
+
+    sid = mujoco.mj_name2id(mw.model, mujoco.mjtObj.mjOBJ_SITE, "goal")
+    # Meta-World's own site config, [("goal", _target_pos)], unless the env replaces it
+    placed_from_target = type(mw)._target_site_config is SawyerXYZEnv._target_site_config
+    if sid < 0 or int(mw.model.site_bodyid[sid]) != 0 or not placed_from_target:
+        raise ValueError(
+            f"task {spec.name}: goal_z needs the goal to be the world-body site 'goal' placed from the target"
+        )
 
 
 def make_metaworld_task(

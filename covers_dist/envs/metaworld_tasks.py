@@ -1,7 +1,10 @@
 """The registry of Meta-World base tasks (task groups) and how each is drawn.
 
 A base task is a Meta-World v3 environment name plus drawing details: colour overrides for named
-geoms/sites (so that objects and goal markers stay distinct at 64 px) and marker sites to hide.
+geoms/sites (so that objects and goal markers stay distinct at 64 px) and marker sites to hide;
+an optional fixed goal height (``goal_z``) for tasks whose sampled goal height the top-down image
+cannot show; and the positions that decide success (``success_state``), which the observability
+check (:mod:`covers_dist.envs.observability`) requires to be visible.
 :func:`register_task` adds any Meta-World v3 environment; the four tasks of the COVERS paper are
 registered on import.
 """
@@ -9,6 +12,7 @@ registered on import.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 from typing import Any
 
 import numpy as np
@@ -21,7 +25,11 @@ __all__ = [
     "robot_bodies",
     "table_geoms",
     "apply_task_colors",
+    "SUCCESS_STATE_KEYS",
 ]
+
+#: Positions of :meth:`MetaWorldTask.task_state` that a spec's ``success_state`` may name.
+SUCCESS_STATE_KEYS = ("hand", "object", "goal")
 
 
 @dataclass(frozen=True)
@@ -34,6 +42,15 @@ class MetaWorldTaskSpec:
     colors: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     #: named sites not drawn (markers that do not mark anything in this task)
     hidden_sites: tuple[str, ...] = ()
+    #: the goal's height (world z, metres) is held at this value at every reset, in place of the
+    #: height Meta-World draws; ``None`` keeps Meta-World's goal. For goals that are the world-body
+    #: site ``goal`` (reach-v3, push-v3, pick-place-v3, ...): a top-down image cannot show a
+    #: sampled height, and success must not depend on what no observation carries.
+    goal_z: float | None = None
+    #: the positions (keys of ``MetaWorldTask.task_state()``) that decide success besides the
+    #: hand, whose (x, y, z) the proprio carries; each must be visible at reset (the observability
+    #: check holds them to it)
+    success_state: tuple[str, ...] = ("object", "goal")
 
 
 TASKS: dict[str, MetaWorldTaskSpec] = {}
@@ -58,20 +75,49 @@ def register_task(
     label: str | None = None,
     colors: dict[str, tuple[float, float, float]] | None = None,
     hidden_sites: tuple[str, ...] = (),
+    goal_z: float | None = None,
+    success_state: tuple[str, ...] = ("object", "goal"),
 ) -> MetaWorldTaskSpec:
-    """Add the Meta-World v3 environment ``name`` (e.g. ``push-v3``) as a base task group."""
+    """Add the Meta-World v3 environment ``name`` (e.g. ``push-v3``) as a base task group.
+
+    ``goal_z``: hold the goal's height at this world z (metres) at every reset (see
+    :class:`MetaWorldTaskSpec`). ``success_state``: the positions besides the hand that decide
+    success, a subset of :data:`SUCCESS_STATE_KEYS`.
+    """
     known = _all_v3_envs()
     if not isinstance(name, str) or name not in known:
         raise ValueError(f"unknown Meta-World v3 environment {name!r}; expected one of {sorted(known)}")
-    spec = MetaWorldTaskSpec(name, label or name, dict(colors or {}), tuple(hidden_sites))
+    if goal_z is not None:
+        if isinstance(goal_z, bool) or not isinstance(goal_z, (int, float)) or not math.isfinite(goal_z):
+            raise ValueError(f"goal_z must be a finite height in metres or None, got {goal_z!r}")
+        goal_z = float(goal_z)
+    success_state = tuple(success_state)
+    unknown = [k for k in success_state if k not in SUCCESS_STATE_KEYS]
+    if not success_state or unknown or len(set(success_state)) != len(success_state):
+        raise ValueError(
+            f"success_state must name distinct positions out of {SUCCESS_STATE_KEYS}, got {success_state!r}"
+        )
+    spec = MetaWorldTaskSpec(
+        name, label or name, dict(colors or {}), tuple(hidden_sites), goal_z=goal_z, success_state=success_state
+    )
     TASKS[name] = spec
     return spec
 
 
-register_task("reach-v3", "Goal Reach", colors={"goal": (1.0, 0.85, 0.0)})
-register_task("button-press-topdown-v3", "Button Press")
-register_task("drawer-close-v3", "Drawer Close")
-register_task("plate-slide-v3", "Plate Slide", hidden_sites=("goal",))
+# Success, read from each env's evaluate_state / compute_reward (metaworld 3.1.1):
+# - reach-v3: ||tcp - _target_pos|| <= 0.05. The puck ("object") is placed but never read by the
+#   reward or by success, so only the goal counts. Meta-World draws the goal's z from 0.05..0.3,
+#   which the top-down image cannot show; it is held at 0.15 m, the middle of that range.
+# - button-press-topdown-v3: |_target_pos.z - object.z| <= 0.024 with _target_pos the "hole"
+#   site of the button box and object the button top; the box is placed at a fixed z (0.115).
+# - drawer-close-v3: ||object - _target_pos|| <= 0.065 with object the drawer handle and
+#   _target_pos the closed handle position; the drawer case is placed at a fixed z (0).
+# - plate-slide-v3: ||object - _target_pos|| <= 0.07 with object the puck (plate) and
+#   _target_pos the goal cage position, drawn with a fixed z (0).
+register_task("reach-v3", "Goal Reach", colors={"goal": (1.0, 0.85, 0.0)}, goal_z=0.15, success_state=("goal",))
+register_task("button-press-topdown-v3", "Button Press", success_state=("object", "goal"))
+register_task("drawer-close-v3", "Drawer Close", success_state=("object", "goal"))
+register_task("plate-slide-v3", "Plate Slide", hidden_sites=("goal",), success_state=("object", "goal"))
 
 
 def robot_bodies(model: Any) -> set[int]:
