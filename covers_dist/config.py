@@ -28,6 +28,7 @@ __all__ = [
     "ClusteringConfig",
     "RuntimeConfig",
     "ApiConfig",
+    "EvalConfig",
     "Config",
     "load_config",
     "config_from_dict",
@@ -185,6 +186,32 @@ class ApiConfig:
     compute_concurrency: int = _f(2, "POST /v1/assign and /v1/act calls in flight at once (others wait).", min=1)
 
 
+EvalMode = Literal["greedy", "stochastic"]
+EvalSelection = Literal["agnostic", "oracle"]
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    every_iterations: int = _f(
+        0, "Evaluate every (task, g) every this many iterations during training, and at the end (0: off).", min=0
+    )
+    episodes: int = _f(4, "Episodes per (task, g) pair, chosen policy and mode (seeded apart from training).", min=1)
+    modes: list[EvalMode] = _f(["greedy", "stochastic"], "Action modes: greedy (mean action) and/or stochastic.")
+    selections: list[EvalSelection] = _f(
+        ["agnostic", "oracle"],
+        "How the policy is chosen: agnostic (the bank's rule on the episodes' first frames, bank unchanged) "
+        "and/or oracle (the policy that trained on the pair's true group).",
+    )
+    tasks: list[str] | None = _f(None, "Base tasks to evaluate (null: all of env.tasks).")
+    workers: int = _f(1, "Ray evaluation actors (serial runs evaluate in the driver's process).", min=1)
+    num_cpus: float = _f(
+        0.0,
+        "CPUs reserved per evaluation actor (0: none, so evaluation shares the training workers' cores "
+        "instead of waiting for free ones).",
+        min=0.0,
+    )
+
+
 @dataclass(frozen=True)
 class Config:
     name: str = _f("covers", "Run name.")
@@ -195,6 +222,7 @@ class Config:
     clustering: ClusteringConfig = field(default_factory=ClusteringConfig, metadata={"doc": "Policy assignment."})
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig, metadata={"doc": "Actors and the loop."})
     api: ApiConfig = field(default_factory=ApiConfig, metadata={"doc": "HTTP service."})
+    eval: EvalConfig = field(default_factory=EvalConfig, metadata={"doc": "Evaluation of every (task, g)."})
 
     def __post_init__(self) -> None:
         _validate_cross_fields(self)
@@ -244,6 +272,12 @@ def _validate_cross_fields(cfg: Config) -> None:
             f"ppo.minibatch_size={cfg.ppo.minibatch_size} exceeds the env steps of one update "
             f"(clustering.update_every * env.max_episode_steps = {steps_per_update})"
         )
+    if cfg.eval.tasks is not None:
+        unknown = [t for t in cfg.eval.tasks if t not in cfg.env.tasks]
+        if unknown or not cfg.eval.tasks:
+            raise ConfigError(f"eval.tasks={cfg.eval.tasks}: every entry must be one of env.tasks={cfg.env.tasks}")
+    if not cfg.eval.modes or not cfg.eval.selections:
+        raise ConfigError(f"eval.modes={cfg.eval.modes} and eval.selections={cfg.eval.selections} must not be empty")
     if not cfg.runtime.serial and cfg.runtime.ray_address is None and cfg.runtime.num_workers > 64:
         raise ConfigError(f"runtime.num_workers={cfg.runtime.num_workers} is too many for a local Ray instance")
 

@@ -202,6 +202,12 @@ class TrainingMetrics(BaseModel):
     policy_counts: dict[str, int] = Field(description="Labelled episodes per policy id.")
     confusion: dict[str, Any] = Field(description="policies x groups episode counts.")
     progress: dict[str, float | int | str | bool | None] = Field(description="The driver's latest metrics row.")
+    evaluation: dict[str, float | int | None] = Field(
+        default_factory=dict,
+        description="Continual-learning metrics of the latest evaluation pass (eval/average_success, "
+        "eval/zero_shot_success, eval/average_forgetting, eval/success/<task>, eval/forgetting/<task>, ...; "
+        "docs/RESULTS.md); empty when the run does not evaluate.",
+    )
     as_of: float
 
 

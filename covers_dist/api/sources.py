@@ -169,47 +169,13 @@ def find_actor(name: str, namespace: str | None = None, address: str | None = No
 
 
 # ---- a saved run, read-only ------------------------------------------------------------------------
-def _model_weights(learner_state: Any, param_names: set[str], where: str) -> dict[str, Any]:
-    """The model parameters inside a learner checkpoint (``{"ppo": PPOLearner.state_dict(), ...}``)."""
-    from ..runtime.checkpoint import CheckpointError
-
-    ppo = learner_state.get("ppo") if isinstance(learner_state, dict) else None
-    if not isinstance(ppo, dict):
-        raise CheckpointError(f"{where}: no 'ppo' learner state inside")
-    candidates = [ppo.get("model"), ppo]
-    for cand in candidates:
-        if isinstance(cand, dict) and param_names <= set(cand):
-            return {k: cand[k] for k in param_names}
-    raise CheckpointError(f"{where}: the learner state holds no model weights (keys: {sorted(ppo)[:8]})")
-
-
 def load_checkpoint_source(run_dir: str | Path, timeout_s: float = 30.0) -> tuple[LocalSource, Any, Path]:
     """A read-only clustering service over the newest valid checkpoint of ``run_dir``.
 
     Returns ``(source, run config, checkpoint path)``. The bank comes from ``<ckpt>/bank`` and
     each policy's weights from ``<ckpt>/learners/policy-N.pt``.
     """
-    import torch
+    from ..runtime.saved_run import load_saved_run
 
-    from ..config import load_config
-    from ..envs import suite_layout
-    from ..models import build_actor_critic
-    from ..runtime.checkpoint import CheckpointError, latest_valid_checkpoint
-    from ..runtime.clustering_service import ClusteringService
-
-    run_dir = Path(run_dir)
-    if not (run_dir / "config.yaml").is_file():
-        raise FileNotFoundError(f"{run_dir} is not a run directory (no config.yaml)")
-    ckpt = latest_valid_checkpoint(run_dir)
-    if ckpt is None:
-        raise CheckpointError(f"{run_dir} has no valid checkpoint under checkpoints/")
-    cfg = load_config(ckpt / "config.yaml" if (ckpt / "config.yaml").is_file() else run_dir / "config.yaml")
-    model = build_actor_critic(cfg.network, suite_layout(cfg.env.suite, cfg.env.image_size))
-    names = {n for n, _ in model.named_parameters()}
-    weights = {}
-    for f in sorted((ckpt / "learners").glob("policy-*.pt")):
-        pid = int(f.stem.split("-", 1)[1])
-        weights[pid] = _model_weights(torch.load(f, map_location="cpu", weights_only=False), names, str(f))
-    service = ClusteringService(cfg, read_only=True)
-    service.load(str(ckpt / "bank"), weights=weights)
-    return LocalSource(service, timeout_s), cfg, ckpt
+    run = load_saved_run(run_dir)
+    return LocalSource(run.service, timeout_s), run.cfg, run.checkpoint

@@ -3,7 +3,14 @@
 * ``success_return.png``: success and return per task group over env steps (moving average);
 * ``policy_timeline.png``: the policy id of every episode over time, coloured by its true group
   (the clustering at a glance: one policy per colour band is a perfect clustering);
-* ``ari_policies.png``: the ARI and the number of policies over env steps.
+* ``ari_policies.png``: the ARI and the number of policies over env steps;
+
+and, when the run has evaluation passes (``eval.jsonl``):
+
+* ``eval_heatmap.png``: greedy success of every (task, g) at the latest pass, policy chosen by the
+  bank (held-out pairs marked H, unseen U);
+* ``eval_success.png``: evaluation success of each group over env steps, with the moments each
+  group appears in the stream (dotted lines in its colour) and the average over groups seen.
 """
 
 from __future__ import annotations
@@ -110,7 +117,69 @@ def make_plots(run_dir: str | Path, window: int = 10) -> list[Path]:
     ax.grid(alpha=0.3)
     ax.set_title("clustering quality and bank size")
     out.append(_save(fig, run / "ari_policies.png"))
+    out += eval_plots(run, episodes, colors)
     return out
+
+
+def eval_plots(run: Path, episodes: list[dict[str, Any]], colors: dict[str, Any]) -> list[Path]:
+    """The evaluation figures (see the module doc); [] when the run has no evaluation pass."""
+    import matplotlib.pyplot as plt
+
+    from ..evaluation import read_passes
+    from ..evaluation.metrics import group_success, pass_summary
+
+    try:
+        passes = read_passes(run)
+    except ValueError as e:
+        raise SystemExit(f"covers-dist plot: {e}") from None
+    if not passes:
+        return []
+    last = passes[-1]
+    tasks = list(dict.fromkeys(r["task"] for r in last["pairs"]))
+    elements = list(dict.fromkeys(r["g"] for r in last["pairs"]))
+    grid = np.full((len(tasks), len(elements)), np.nan)
+    marks = {}
+    for r in last["pairs"]:
+        i, j = tasks.index(r["task"]), elements.index(r["g"])
+        res = r.get("results", {}).get("greedy/agnostic")
+        if res is not None:
+            grid[i, j] = res["success"]
+        marks[i, j] = {"held_out": "H", "unseen": "U"}.get(r["status"], "")
+    fig, ax = plt.subplots(figsize=(1.1 * len(elements) + 3, 0.7 * len(tasks) + 1.8))
+    im = ax.imshow(grid, vmin=0.0, vmax=1.0, cmap="viridis", aspect="auto")
+    for (i, j), m in marks.items():
+        v = grid[i, j]
+        ax.text(j, i, ("n/a" if np.isnan(v) else f"{v:.2f}") + (f" {m}" if m else ""), ha="center", va="center",
+                color="white" if np.isnan(v) or v < 0.6 else "black", fontsize=8)  # fmt: skip
+    ax.set_xticks(range(len(elements)), elements)
+    ax.set_yticks(range(len(tasks)), tasks)
+    ax.set(xlabel="group element g", title=f"greedy success per (task, g), iteration {last.get('iteration')} "
+           "(H held-out, U not trained yet)")  # fmt: skip
+    fig.colorbar(im, ax=ax, label="success")
+    paths = [_save(fig, run / "eval_heatmap.png")]
+
+    fig, ax = plt.subplots(figsize=(10, 4))
+    steps = [ev.get("env_steps", 0) for ev in passes]
+    for t in tasks:
+        color = colors.get(t)
+        ax.plot(steps, [np.nan if (v := group_success(ev, t)) is None else v for ev in passes], "o-", label=t,
+                color=color)  # fmt: skip
+        ax.plot(steps, [np.nan if (v := group_success(ev, t, key="greedy/oracle")) is None else v for ev in passes],
+                ":", color=color, alpha=0.6)  # fmt: skip
+    avg = [pass_summary(ev)["average_success"] for ev in passes]
+    ax.plot(steps, [np.nan if v is None else v for v in avg], "k--", label="average (groups seen)")
+    steps_at = dict(zip([e["episode_index"] for e in episodes], np.cumsum([e["length"] for e in episodes])))
+    prev = None
+    for e in episodes:  # the start of every stream segment, in its group's colour
+        if e["task"] != prev and e["episode_index"] in steps_at:
+            ax.axvline(steps_at[e["episode_index"]] - e["length"], color=colors.get(e["task"], "grey"), ls=":", lw=1)
+        prev = e["task"]
+    ax.set(xlabel="env steps", ylabel="greedy success (evaluation)", ylim=(-0.05, 1.05),
+           title="evaluation success per group (solid: bank's choice, dotted: oracle policy); lines: group switches")  # fmt: skip
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    paths.append(_save(fig, run / "eval_success.png"))
+    return paths
 
 
 def _save(fig: Any, path: Path) -> Path:

@@ -5,7 +5,8 @@
   episode index), so nothing is lost or doubled;
 * the clustering actor: named ``covers-clustering-<run name>`` in namespace ``covers-dist``, no CPU reserved (it is light),
   restarted from its persisted state, with assignments made idempotent by iteration number;
-* learners: one per policy, on a GPU when ``runtime.num_gpus > 0``.
+* learners: one per policy, on a GPU when ``runtime.num_gpus > 0``;
+* evaluation workers: rollout workers that run evaluation episodes (``eval.num_cpus`` each).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from .clustering_service import ClusteringService
 from .learner import PolicyLearner
 from .rollout import RolloutWorker
 
-__all__ = ["rollout_actor", "clustering_actor", "learner_actor", "clustering_actor_name"]
+__all__ = ["rollout_actor", "eval_actor", "clustering_actor", "learner_actor", "clustering_actor_name"]
 
 MAX_RESTARTS = 8
 #: Ray namespace of the named clustering actor (so services can find it from any job).
@@ -41,6 +42,11 @@ class _RolloutHost(RolloutWorker):
 
 def rollout_actor(cfg: Config) -> Any:
     return ray.remote(num_cpus=1, max_restarts=MAX_RESTARTS, max_task_retries=-1)(_RolloutHost)
+
+
+def eval_actor(cfg: Config) -> Any:
+    """Evaluation workers: rollout workers reserving ``eval.num_cpus`` (0 by default)."""
+    return ray.remote(num_cpus=cfg.eval.num_cpus, max_restarts=MAX_RESTARTS, max_task_retries=-1)(RolloutWorker)
 
 
 def clustering_actor_name(cfg: Config) -> str:

@@ -13,7 +13,10 @@ from typing import Any
 from ..config import Config
 from .rollout import EpisodeSpec
 
-__all__ = ["SerialBackend", "RayBackend", "split_first_frames", "summarize_episode"]
+__all__ = ["SerialBackend", "RayBackend", "RayEvalExecutors", "split_first_frames", "summarize_episode"]
+
+#: Worker index of evaluation workers (only used in their names and stats).
+EVAL_WORKER_INDEX = 1000
 
 
 def summarize_episode(ep: dict[str, Any]) -> dict[str, Any]:
@@ -49,6 +52,7 @@ class SerialBackend:
         self.workers = [RolloutWorker(cfg, i) for i in range(cfg.runtime.num_workers)]
         self.clustering = ClusteringService(cfg, str(run_dir))
         self.learners: dict[int, Any] = {}
+        self._eval: Any = None
 
     def publish(self, weights: Any) -> Any:
         return weights
@@ -77,9 +81,20 @@ class SerialBackend:
     def call_learner(self, policy_id: int, method: str, *args: Any) -> Any:
         return getattr(self.learners[policy_id], method)(*args)
 
+    def eval_executors(self) -> Any:
+        """One evaluation worker of its own (its envs and model never touch the training workers')."""
+        if self._eval is None:
+            from ..evaluation import LocalExecutors
+            from .rollout import RolloutWorker
+
+            self._eval = LocalExecutors([RolloutWorker(self.cfg, EVAL_WORKER_INDEX)])
+        return self._eval
+
     def shutdown(self) -> None:
         for w in self.workers:
             w.close()
+        if self._eval is not None:
+            self._eval.close()
 
 
 class RayBackend:
@@ -99,6 +114,7 @@ class RayBackend:
         self.workers = [rollout_actor(cfg).remote(cfg, i) for i in range(cfg.runtime.num_workers)]
         self.clustering = clustering_actor(cfg, self.run_dir)
         self.learners: dict[int, Any] = {}
+        self._eval: RayEvalExecutors | None = None
 
     def publish(self, weights: Any) -> Any:
         return [self.ray.put(weights)]  # wrapped in a list: workers resolve it only when needed
@@ -129,9 +145,42 @@ class RayBackend:
     def call_learner(self, policy_id: int, method: str, *args: Any) -> Any:
         return self.ray.get(getattr(self.learners[policy_id], method).remote(*args))
 
+    def eval_executors(self) -> "RayEvalExecutors":
+        if self._eval is None:
+            self._eval = RayEvalExecutors(self.cfg)
+        return self._eval
+
     def shutdown(self) -> None:
-        for actor in [*self.workers, *self.learners.values(), self.clustering]:
+        evals = self._eval.actors if self._eval is not None else []
+        for actor in [*self.workers, *self.learners.values(), self.clustering, *evals]:
             try:
                 self.ray.kill(actor, no_restart=True)
+            except Exception:  # noqa: BLE001 - already gone
+                pass
+
+
+class RayEvalExecutors:
+    """``eval.workers`` evaluation actors (rollout workers reserving ``eval.num_cpus`` each)."""
+
+    def __init__(self, cfg: Config) -> None:
+        import ray
+
+        from .actors import eval_actor
+
+        self.ray = ray
+        cls = eval_actor(cfg)
+        self.actors = [cls.remote(cfg, EVAL_WORKER_INDEX + i) for i in range(cfg.eval.workers)]
+
+    @property
+    def size(self) -> int:
+        return len(self.actors)
+
+    def map(self, method: str, args: list[tuple]) -> list[Any]:
+        return self.ray.get([getattr(a, method).remote(*x) for a, x in zip(self.actors, args)])
+
+    def close(self) -> None:
+        for a in self.actors:
+            try:
+                self.ray.kill(a, no_restart=True)
             except Exception:  # noqa: BLE001 - already gone
                 pass

@@ -36,6 +36,8 @@ from .ray_setup import resolve_weights
 __all__ = ["ClusteringService"]
 
 SINGLE_POLICY_METHODS = ("equi", "cnn")
+#: Metric-row keys of evaluation passes (covers_dist.evaluation.metrics.metric_row).
+EVAL_PREFIX = "eval/"
 LIVE_DIR = "clustering_live"
 
 
@@ -52,6 +54,7 @@ class ClusteringService:
         self.last_iteration = -1
         self.last_record: dict[str, Any] | None = None
         self.progress: dict[str, Any] = {}
+        self.evaluation: dict[str, Any] = {}
         self.group_names: dict[int, str] = {i: t for i, t in enumerate(cfg.env.tasks)}
         self.bank = self._new_bank()
         if self.run_dir is not None and (self.run_dir / LIVE_DIR / "service.json").is_file() and not read_only:
@@ -115,12 +118,16 @@ class ClusteringService:
             self._persist()
             return record
 
-    def what_if(self, obs: dict[str, np.ndarray]) -> dict[str, Any]:
-        """The assignment the bank would make for ``obs``, without changing anything."""
+    def what_if(self, obs: dict[str, np.ndarray], group_ids: list[int] | None = None) -> dict[str, Any]:
+        """The assignment the bank would make for ``obs``, without changing anything.
+
+        ``group_ids`` (true groups, one per frame) are needed only by a ground-truth bank (COVERS-GT).
+        """
         with self._lock:
             if not len(self.bank):
                 raise LookupError("the policy bank is empty: nothing to compare with yet")
-            return self.bank.what_if(obs).to_dict()
+            groups = group_ids if self.bank.mode == "ground_truth" else None
+            return self.bank.what_if(obs, group_ids=groups).to_dict()
 
     def record_episodes(self, summaries: list[dict[str, Any]]) -> None:
         with self._lock:
@@ -134,6 +141,9 @@ class ClusteringService:
         """Training progress from the driver (for the metrics endpoints)."""
         with self._lock:
             self.progress = {k: v for k, v in row.items() if isinstance(v, (int, float, str, bool)) or v is None}
+            evaluated = {k: v for k, v in self.progress.items() if k.startswith(EVAL_PREFIX)}
+            if evaluated:  # the latest evaluation pass's metrics stay until the next pass
+                self.evaluation = {**evaluated, "iteration": row.get("iteration")}
 
     # ---- queries -------------------------------------------------------------------------------
     def current_policy_id(self) -> int | None:
@@ -167,6 +177,7 @@ class ClusteringService:
             m["num_policies"] = len(self.bank)
             m["current_policy_id"] = self.bank.current_policy_id
             m["progress"] = dict(self.progress)
+            m["evaluation"] = dict(self.evaluation)
             return m
 
     def act(self, obs: dict[str, np.ndarray], policy_id: int | None = None, deterministic: bool = True) -> dict:
@@ -187,7 +198,12 @@ class ClusteringService:
 
     # ---- persistence ---------------------------------------------------------------------------
     def _service_state(self) -> dict[str, Any]:
-        return {"last_iteration": self.last_iteration, "last_record": self.last_record, "progress": self.progress}
+        return {
+            "last_iteration": self.last_iteration,
+            "last_record": self.last_record,
+            "progress": self.progress,
+            "evaluation": self.evaluation,
+        }
 
     def save(self, directory: str) -> None:
         """Bank + service counters into ``directory`` (the bank's own atomic format + a JSON file).
@@ -214,6 +230,7 @@ class ClusteringService:
                 self.last_iteration = int(state["last_iteration"])
                 self.last_record = state["last_record"]
                 self.progress = state.get("progress", {})
+                self.evaluation = state.get("evaluation", {})
             self.versions.clear()
             for pid, w in (weights or {}).items():
                 self.sync_weights({int(pid): (-1, w)})

@@ -32,6 +32,7 @@ import yaml
 from ..config import Config, config_to_dict, load_config
 from ..envs.stream import TaskStream
 from .checkpoint import latest_valid_checkpoint, write_checkpoint
+from .evaluation import PeriodicEvaluation, evaluation_pass
 from .metrics import M, MetricsWriter, Progress
 from .rollout import EpisodeSpec
 
@@ -60,6 +61,8 @@ class Trainer:
         self.success: dict[str, float] = {}
         self.returns: dict[str, float] = {}
         self.phase_time: dict[str, float] = {}
+        # per task group: first episode index and env steps spent on it (for evaluation metrics)
+        self.group_info: dict[str, dict[str, Any]] = {t: {"first_episode": None, "env_steps": 0} for t in cfg.env.tasks}
         self._stop = False
         self._last_rows: list[dict[str, Any]] = []
         self._t_start, self._steps_at_start = time.monotonic(), 0
@@ -77,6 +80,7 @@ class Trainer:
 
             self.backend = RayBackend(cfg, self.run_dir)
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+        self.evaluation = PeriodicEvaluation(cfg, self.run_dir, background=not cfg.runtime.serial, log=self.log)
 
     # ---- phases --------------------------------------------------------------------------------
     @contextmanager
@@ -143,6 +147,10 @@ class Trainer:
         batch_success: dict[str, list[float]] = {}
         batch_return: dict[str, list[float]] = {}
         for s in summaries:
+            info = self.group_info.setdefault(s["task"], {"first_episode": None, "env_steps": 0})
+            if info["first_episode"] is None:
+                info["first_episode"] = int(s["episode_index"])
+            info["env_steps"] += int(s["length"])
             batch_success.setdefault(s["task"], []).append(s["success"])
             batch_return.setdefault(s["task"], []).append(s["return"])
         for task in batch_success:  # the latest batch of each task group seen so far
@@ -184,6 +192,7 @@ class Trainer:
             "current_policy": self.current_policy,
             "weight_version": self.weight_version,
             "policies": sorted(self.versions),
+            "groups": self.group_info,
             "stream": self.stream.state_dict(),
             "numpy_rng": np.random.get_state()[1].tolist(),
             "torch_rng": torch.get_rng_state().tolist(),
@@ -207,6 +216,7 @@ class Trainer:
         self.env_steps = state["env_steps"]
         self.current_policy = state["current_policy"]
         self.weight_version = state["weight_version"]
+        self.group_info.update(state.get("groups", {}))
         self.stream.load_state_dict(state["stream"])
         self.backend.call_clustering("load", str(path / "bank"))
         for pid in state["policies"]:
@@ -215,6 +225,7 @@ class Trainer:
             self.backend.call_learner(pid, "load_state_dict", learner_state)
             _, weights = self.backend.call_learner(pid, "weights")
             self._publish(pid, weights)
+        self.evaluation.rewind(self.iteration)
         self.log(f"resumed from {path} (iteration {self.iteration}, {self.env_steps} env steps)")
 
     # ---- the loop ------------------------------------------------------------------------------
@@ -235,12 +246,23 @@ class Trainer:
             row: dict[str, Any] = {}
             while self.env_steps < self.cfg.runtime.total_env_steps and not self._stop:
                 row = self.step()
+                if self.evaluation.due(self.iteration):
+                    self.start_evaluation()
+                row.update(self.evaluation.collect())
                 self.backend.call_clustering("report", row)
                 writer.scalars(row)
                 writer.episodes(self._last_episode_rows())
                 progress.maybe_print(row)
                 if self.iteration % self.cfg.runtime.checkpoint_every == 0:
                     self.checkpoint()
+            if row and self.evaluation.enabled and not self._stop:  # a final pass, unless interrupted
+                if self.evaluation.last_iteration != self.iteration and not self.evaluation.running:
+                    self.start_evaluation()
+                final = self.evaluation.collect(wait=True)
+                if final:  # the iteration's row again, now with the pass's metrics (plots keep the last)
+                    row.update(final)
+                    self.backend.call_clustering("report", row)
+                    writer.scalars(row)
             path = self.checkpoint()
             if row:
                 progress.maybe_print(row, force=True)
@@ -251,6 +273,30 @@ class Trainer:
             writer.close()
             for s, h in old.items():
                 signal.signal(s, h)
+
+    # ---- evaluation ------------------------------------------------------------------------------
+    def start_evaluation(self) -> None:
+        """Evaluate every (task, g) with the bank as it is now (serial: in place; Ray: in the background)."""
+        weights_map = {pid: (self.versions[pid], self.handles[pid]) for pid in self.versions}
+        confusion = self.backend.call_clustering("metrics").get("confusion", {})
+        info = {
+            "iteration": self.iteration,
+            "env_steps": self.env_steps,
+            "source": "training",
+            "groups": {t: dict(v) for t, v in self.group_info.items()},
+        }
+        episodes_done = self.next_episode
+        executors = self.backend.eval_executors()
+
+        def choose(obs: dict[str, np.ndarray], groups: list[int]) -> dict[str, Any]:
+            return self.backend.call_clustering("what_if", obs, groups)
+
+        def make_pass() -> dict[str, Any]:
+            return evaluation_pass(
+                self.cfg, executors, self.stream, episodes_done, choose, confusion, weights_map, info, log=self.log
+            )
+
+        self.evaluation.start(self.iteration, make_pass)
 
     def _last_episode_rows(self) -> list[dict[str, Any]]:
         steps = self.env_steps - sum(s["length"] for s in self._last_rows)
@@ -289,7 +335,7 @@ def train(
             )
         for name in ("checkpoints", "clustering_live", "tb"):
             shutil.rmtree(run_dir / name, ignore_errors=True)
-        for name in ("metrics.jsonl", "episodes.jsonl"):
+        for name in ("metrics.jsonl", "episodes.jsonl", "eval.jsonl"):
             (run_dir / name).unlink(missing_ok=True)
     started = False
     if not cfg.runtime.serial:

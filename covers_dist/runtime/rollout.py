@@ -17,6 +17,7 @@ import torch
 
 from ..config import Config
 from ..envs import make_task, suite_layout
+from ..evaluation.protocol import EvalJob, EvalPair
 from ..models import build_actor_critic
 from ..ppo.rollout import run_lockstep
 from ..symmetry import GroupElement
@@ -33,6 +34,10 @@ class EpisodeSpec:
     task: str
     g: str
     group_id: int
+
+
+def _eval_specs(pair: EvalPair, n: int) -> list[EpisodeSpec]:
+    return [EpisodeSpec(i, pair.task, pair.g, pair.group_id) for i in range(n)]
 
 
 def episode_seed(base_seed: int, episode_index: int) -> int:
@@ -92,21 +97,42 @@ class RolloutWorker:
         version: int,
         weights: Any = None,
         deterministic: bool = False,
+        seeds: list[int] | None = None,
     ) -> list[dict[str, Any]]:
-        """Run one full episode per spec with the given policy; returns Episode dicts."""
+        """Run one full episode per spec with the given policy; returns Episode dicts.
+
+        ``seeds`` (one per spec) replaces the training seeds derived from the episode indices
+        (evaluation uses its own seeds, see :mod:`covers_dist.evaluation.protocol`).
+        """
+        if seeds is not None and len(seeds) != len(specs):
+            raise ValueError(f"need one seed per episode spec, got {len(seeds)} seeds for {len(specs)} specs")
         self._ensure_weights(policy_id, version, weights)
         episodes: list[dict[str, Any]] = []
         width = self.cfg.runtime.envs_per_worker
         for start in range(0, len(specs), width):
-            episodes.extend(self._run_group(specs[start : start + width], policy_id, version, deterministic))
+            chunk = None if seeds is None else [int(s) for s in seeds[start : start + width]]
+            episodes.extend(self._run_group(specs[start : start + width], policy_id, version, deterministic, chunk))
         return episodes
 
+    def first_observations(self, specs: list[EpisodeSpec], seeds: list[int]) -> dict[str, np.ndarray]:
+        """The first observation of each spec's env reset with its seed (no policy involved)."""
+        if len(seeds) != len(specs):
+            raise ValueError(f"need one seed per episode spec, got {len(seeds)} seeds for {len(specs)} specs")
+        obs = [self._env(s.task, s.g, 0).reset(seed=int(seed))[0] for s, seed in zip(specs, seeds)]
+        return {"image": np.stack([o["image"] for o in obs]), "proprio": np.stack([o["proprio"] for o in obs])}
+
     def _run_group(
-        self, specs: list[EpisodeSpec], policy_id: int, version: int, deterministic: bool
+        self,
+        specs: list[EpisodeSpec],
+        policy_id: int,
+        version: int,
+        deterministic: bool,
+        seeds: list[int] | None = None,
     ) -> list[dict[str, Any]]:
         envs = [self._env(s.task, s.g, slot) for slot, s in enumerate(specs)]
-        gen = torch.Generator().manual_seed(episode_seed(self.cfg.seed, specs[0].episode_index) % (2**63))
-        seeds = [episode_seed(self.cfg.seed, s.episode_index) for s in specs]
+        if seeds is None:
+            seeds = [episode_seed(self.cfg.seed, s.episode_index) for s in specs]
+        gen = torch.Generator().manual_seed(int(seeds[0]) % (2**63))
         episodes = run_lockstep(self.model, envs, seeds, gen, deterministic)
         for ep, spec in zip(episodes, specs):
             self.env_steps += len(ep["reward"])
@@ -119,6 +145,26 @@ class RolloutWorker:
                 policy_version=version,
             )
         return episodes
+
+    # ---- evaluation (covers_dist.evaluation) ------------------------------------------------------
+    def eval_first_frames(self, items: list[tuple[EvalPair, list[int]]]) -> list[dict[str, np.ndarray]]:
+        """First observations of each (pair, seeds): what the bank chooses a policy from."""
+        return [self.first_observations(_eval_specs(pair, len(seeds)), seeds) for pair, seeds in items]
+
+    def eval_jobs(self, jobs: list[EvalJob], weights_map: dict[int, tuple[int, Any]]) -> list[dict[str, list[float]]]:
+        """Run every job's episodes; per job ``{"success": [...], "return": [...]}`` (no frames)."""
+        out = []
+        for job in jobs:
+            version, handle = weights_map[job.policy_id]
+            specs = _eval_specs(job.pair, len(job.seeds))
+            episodes = self.sample(specs, job.policy_id, version, handle, job.mode == "greedy", job.seeds)
+            out.append(
+                {
+                    "success": [float(np.max(ep["success"])) if len(ep["success"]) else 0.0 for ep in episodes],
+                    "return": [float(ep["reward"].sum()) for ep in episodes],
+                }
+            )
+        return out
 
     def stats(self) -> dict[str, int]:
         return {"worker_index": self.worker_index, "env_steps": self.env_steps, "weight_pulls": self.weight_pulls}

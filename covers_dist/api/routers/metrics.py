@@ -51,6 +51,7 @@ def training_metrics(snap: Snapshot) -> TrainingMetrics:
         policy_counts={str(k): int(v) for k, v in (m.get("policy_counts") or {}).items()},
         confusion=m.get("confusion") or {},
         progress=progress,
+        evaluation={k: _num(v) for k, v in sorted((m.get("evaluation") or {}).items())},
         as_of=snap.as_of,
     )
 
@@ -106,6 +107,7 @@ class TrainingCollector(Collector):
                 if v is not None:
                     g.add_metric([task], float(v))
             yield g
+        yield from _evaluation_gauges(t.evaluation)
         episodes = GaugeMetricFamily("covers_policy_episodes", "Episodes assigned per policy.", labels=["policy"])
         buffers = GaugeMetricFamily(
             "covers_policy_buffer_size", "Initial observations held per policy.", labels=["policy"]
@@ -115,6 +117,29 @@ class TrainingCollector(Collector):
             buffers.add_metric([str(p["policy_id"])], float(p.get("buffer_size", 0)))
         yield episodes
         yield buffers
+
+
+EVAL_SCALARS = (
+    ("covers_eval_average_success", "eval/average_success", "Evaluation: mean greedy success over groups seen."),
+    ("covers_eval_zero_shot_success", "eval/zero_shot_success", "Evaluation: greedy success on held-out (task, g)."),
+    ("covers_eval_average_forgetting", "eval/average_forgetting", "Evaluation: mean forgetting over groups."),
+)
+EVAL_PER_TASK = (
+    ("covers_eval_success", "eval/success/", "Evaluation: greedy success per base task (bank's choice)."),
+    ("covers_eval_forgetting", "eval/forgetting/", "Evaluation: best earlier success minus latest, per base task."),
+)
+
+
+def _evaluation_gauges(evaluation: dict[str, Any]) -> Iterator[GaugeMetricFamily]:
+    for name, key, doc in EVAL_SCALARS:
+        if evaluation.get(key) is not None:
+            yield GaugeMetricFamily(name, doc, value=float(evaluation[key]))
+    for name, prefix, doc in EVAL_PER_TASK:
+        g = GaugeMetricFamily(name, doc, labels=["task"])
+        for key, v in evaluation.items():
+            if key.startswith(prefix) and v is not None:
+                g.add_metric([key[len(prefix) :]], float(v))
+        yield g
 
 
 class RequestMetrics:

@@ -1,0 +1,183 @@
+"""``covers-dist eval RUN_DIR``: evaluate a saved run's policy bank on every (task, g).
+
+Loads the newest valid checkpoint read-only, and for every base task x every element of the
+run's group (seen, unseen and held-out pairs marked) runs ``--episodes`` seeded evaluation
+episodes per chosen policy and mode: the policy picked task-agnostically by the bank's own
+assignment rule on the episodes' first frames (a what-if: the bank does not change) and the
+oracle policy (the one that trained on the pair's group); greedy and stochastic actions. The pass
+is appended to ``RUN_DIR/eval.jsonl`` (never to the checkpoints); the per-pair table and the
+continual-learning metrics are printed. Serial in this process by default; ``--workers N`` runs
+the episodes on N Ray actors of a local, loopback-only Ray instance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "eval",
+        help="evaluate a saved run on every (task, g): success and return, agnostic and oracle policies",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory written by covers-dist train")
+    p.add_argument("--episodes", type=int, help="episodes per pair, policy and mode (default: the run's eval.episodes)")
+    p.add_argument("--tasks", help="comma-separated base tasks to evaluate (default: every task of the run)")
+    p.add_argument("--modes", help="comma-separated: greedy,stochastic (default: the run's eval.modes)")
+    p.add_argument("--selections", help="comma-separated: agnostic,oracle (default: the run's eval.selections)")
+    p.add_argument("--workers", type=int, default=0, help="Ray evaluation actors (default 0: serial, in this process)")
+    p.add_argument("--no-write", action="store_true", help="print only; do not append to RUN_DIR/eval.jsonl")
+    p.add_argument("--json", action="store_true", help="print the pass and its metrics as JSON")
+    p.set_defaults(func=run)
+
+
+def _csv(value: str | None, name: str) -> list[str] | None:
+    if value is None:
+        return None
+    items = [v.strip() for v in value.split(",") if v.strip()]
+    if not items:
+        raise SystemExit(f"covers-dist eval: --{name} is empty")
+    return items
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..config import ConfigError, config_from_dict, config_to_dict
+    from ..envs.stream import TaskStream
+    from ..evaluation import append_pass, continual_metrics, read_passes
+    from ..evaluation.report import pairs_table
+    from ..runtime.checkpoint import CheckpointError
+    from ..runtime.evaluation import evaluation_pass, group_progress
+    from ..runtime.saved_run import load_saved_run
+
+    if args.episodes is not None and args.episodes < 1:
+        raise SystemExit(f"covers-dist eval: --episodes must be >= 1, got {args.episodes}")
+    if args.workers < 0:
+        raise SystemExit(f"covers-dist eval: --workers must be >= 0, got {args.workers}")
+    try:
+        saved = load_saved_run(args.run_dir, log=lambda m: print(m, file=sys.stderr))
+    except (FileNotFoundError, CheckpointError) as e:
+        raise SystemExit(f"covers-dist eval: {e}") from None
+    cfg = saved.cfg
+    tasks = _csv(args.tasks, "tasks")
+    if tasks is not None:
+        unknown = [t for t in tasks if t not in cfg.env.tasks]
+        if unknown:
+            raise SystemExit(
+                f"covers-dist eval: task(s) {unknown} were never part of this run; it trained on {list(cfg.env.tasks)}"
+            )
+    data = config_to_dict(cfg)
+    for key, value in (("modes", _csv(args.modes, "modes")), ("selections", _csv(args.selections, "selections"))):
+        if value is not None:
+            data["eval"][key] = value
+    if args.workers:
+        data["eval"]["workers"] = args.workers
+        data["eval"]["num_cpus"] = 1.0
+    try:
+        cfg = config_from_dict(data)
+    except ConfigError as e:
+        raise SystemExit(f"covers-dist eval: {e}") from None
+    stream = TaskStream.from_config(cfg.env, cfg.seed)
+    episodes_done = int(saved.driver.get("next_episode", 0))
+    groups = saved.driver.get("groups") or group_progress(stream, _episode_rows(saved.run_dir, episodes_done))
+    info = {
+        "iteration": int(saved.driver.get("iteration", 0)),
+        "env_steps": int(saved.driver.get("env_steps", 0)),
+        "source": f"checkpoint {saved.checkpoint.name}",
+        "groups": groups,
+    }
+    service = saved.service
+    executors, stop = _executors(cfg, args.workers)
+    try:
+        ev = evaluation_pass(
+            cfg,
+            executors,
+            stream,
+            episodes_done,
+            lambda obs, gids: service.what_if(obs, gids),
+            service.metrics().get("confusion", {}),
+            saved.weights_map,
+            info,
+            tasks=tasks,
+            episodes=args.episodes,
+            log=lambda m: print(m, file=sys.stderr),
+        )
+    finally:
+        executors.close()
+        stop()
+    passes = read_passes(saved.run_dir)
+    if not args.no_write:
+        append_pass(saved.run_dir, ev)
+    history = [p for p in passes if p.get("iteration", -1) < ev["iteration"]] + [ev]
+    cl = continual_metrics(history)
+    if args.json:
+        print(json.dumps({"pass": ev, "metrics": cl}, default=float))
+        return 0
+    print(f"# {saved.run_dir} at iteration {ev['iteration']} ({ev['env_steps']} env steps, {saved.checkpoint.name})")
+    print(f"{ev['eval_episodes']} evaluation episodes in {ev['time_s']['total']:.1f} s\n")
+    print(pairs_table(ev))
+    print()
+    print(_summary(cl))
+    if not args.no_write:
+        print(f"\nappended to {Path(saved.run_dir) / 'eval.jsonl'}")
+    return 0
+
+
+def _summary(cl: dict[str, Any]) -> str:
+    from ..evaluation.report import markdown_table
+
+    rows = [
+        [t, g["success"], g["success_seen"], g["success_held_out"], g["success_oracle"], g["success_stochastic"],
+         g["return"], cl["forgetting"].get(t)]
+        for t, g in cl["groups"].items()
+    ]  # fmt: skip
+    table = markdown_table(
+        ["group", "success", "seen", "held-out", "oracle", "stochastic", "return", "forgetting"], rows
+    )
+    avg = cl.get("average_success")
+    zs = cl.get("zero_shot_success")
+    fg = cl.get("average_forgetting")
+    line = (
+        f"average success (groups seen so far) {'n/a' if avg is None else f'{avg:.2f}'}; zero-shot (held-out) "
+        f"{'n/a' if zs is None else f'{zs:.2f}'}; average forgetting {'n/a' if fg is None else f'{fg:.2f}'} "
+        f"over {cl['passes']} pass(es)"
+    )
+    return table + "\n\n" + line
+
+
+def _episode_rows(run_dir: Path, episodes_done: int) -> list[dict[str, Any]]:
+    """Rows of episodes.jsonl before ``episodes_done`` (newest per index); [] if the file is missing."""
+    path = Path(run_dir) / "episodes.jsonl"
+    if not path.is_file():
+        return []
+    rows: dict[int, dict[str, Any]] = {}
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(row, dict) and int(row.get("episode_index", -1)) in range(episodes_done):
+            rows[int(row["episode_index"])] = row
+    return [rows[i] for i in sorted(rows)]
+
+
+def _executors(cfg: Any, workers: int) -> tuple[Any, Any]:
+    """(executors, stop function): one worker in this process, or Ray actors on a local instance."""
+    if workers == 0:
+        from ..evaluation import LocalExecutors
+        from ..runtime.backends import EVAL_WORKER_INDEX
+        from ..runtime.rollout import RolloutWorker
+
+        return LocalExecutors([RolloutWorker(cfg, EVAL_WORKER_INDEX)]), lambda: None
+    from ..runtime.backends import RayEvalExecutors
+    from ..runtime.ray_setup import init_ray, shutdown_ray
+
+    init_ray(max(cfg.runtime.num_cpus, workers), cfg.runtime.ray_address)
+    local = dataclasses.replace(cfg, runtime=dataclasses.replace(cfg.runtime, serial=False))
+    return RayEvalExecutors(local), shutdown_ray

@@ -1,0 +1,179 @@
+"""What one evaluation pass runs: the (task, g) pairs, their seeds, the policy choices, the rows.
+
+An evaluation pass covers every base task x every element of the run's group. Each pair is
+marked ``seen`` (the stream scheduled it before the pass), ``held_out`` (the stream never
+schedules it: zero-shot generalization) or ``unseen`` (trainable, not reached yet). Every pair
+runs ``episodes`` episodes per selection and mode:
+
+* selection ``agnostic``: the policy the bank's own assignment rule picks from the first frames of
+  the pair's evaluation episodes (a what-if: the bank does not change), as training would;
+* selection ``oracle``: the policy that trained on the pair's true group (most assigned training
+  episodes of that group), as COVERS-GT would;
+* mode ``greedy`` (the policy's mean action) and ``stochastic`` (sampled actions).
+
+Evaluation episodes have their own seeds, a pure function of the run seed, the pair and the
+episode number, tagged so that they never coincide with a training episode's seed
+(``SeedSequence([seed, episode_index])`` in the rollout workers); every pass uses the same seeds,
+so successive passes compare like with like. Plain Python: no Ray, no torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+__all__ = [
+    "EVAL_SEED_TAG",
+    "SELECTIONS",
+    "MODES",
+    "STATUSES",
+    "EvalPair",
+    "EvalJob",
+    "eval_seed",
+    "eval_pairs",
+    "oracle_policies",
+    "plan_jobs",
+    "pair_rows",
+]
+
+#: Tag mixed into every evaluation seed (training seeds are SeedSequence([seed, episode index])).
+EVAL_SEED_TAG = 0xE7A1
+SELECTIONS: tuple[str, ...] = ("agnostic", "oracle")
+MODES: tuple[str, ...] = ("greedy", "stochastic")
+STATUSES: tuple[str, ...] = ("seen", "unseen", "held_out")
+
+
+@dataclass(frozen=True)
+class EvalPair:
+    """One transformed task of the evaluation grid."""
+
+    task: str
+    g: str
+    group_id: int
+    element_index: int
+    status: str
+
+    @property
+    def key(self) -> str:
+        return f"{self.task}|{self.g}"
+
+
+@dataclass
+class EvalJob:
+    """``len(seeds)`` episodes of one pair with one policy in one mode (the unit a worker runs)."""
+
+    pair: EvalPair
+    policy_id: int
+    mode: str
+    seeds: list[int]
+    selections: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "pair": asdict(self.pair)}
+
+
+def eval_seed(run_seed: int, group_id: int, element_index: int, episode: int) -> int:
+    """The reset seed of evaluation episode ``episode`` of pair (group, element)."""
+    seq = np.random.SeedSequence([int(run_seed), EVAL_SEED_TAG, int(group_id), int(element_index), int(episode)])
+    return int(seq.generate_state(1)[0])
+
+
+def eval_pairs(stream: Any, episodes_done: int, tasks: Sequence[str] | None = None) -> list[EvalPair]:
+    """Every (task, g) of ``stream`` (a :class:`~covers_dist.envs.stream.TaskStream`) for ``tasks``
+    (default: all of the stream's), marked by what the stream scheduled in its first
+    ``episodes_done`` episodes. Unknown task names raise ``ValueError`` naming them."""
+    tasks = list(stream.tasks if tasks is None else tasks)
+    unknown = [t for t in tasks if t not in stream.tasks]
+    if unknown:
+        raise ValueError(f"task(s) {unknown} are not in this run; it trained on {list(stream.tasks)}")
+    seen = scheduled_pairs(stream, episodes_done)
+    held = set(stream.held_out_pairs)
+    pairs = []
+    for task in tasks:
+        for j, g in enumerate(stream.group):
+            key = (task, g.name)
+            status = "held_out" if key in held else ("seen" if key in seen else "unseen")
+            pairs.append(EvalPair(task, g.name, stream.group_id(task), j, status))
+    return pairs
+
+
+def scheduled_pairs(stream: Any, episodes_done: int) -> set[tuple[str, str]]:
+    """(task, element name) pairs of the segments the stream started in its first ``episodes_done``."""
+    segments = -(-int(episodes_done) // stream.episodes_per_task)  # ceil: a started segment counts
+    return {stream.task_at(s * stream.episodes_per_task).key for s in range(segments)}
+
+
+def oracle_policies(confusion: dict[str, Any]) -> dict[int, int]:
+    """{true group id: the policy that served most of its training episodes} from a bank's
+    confusion table (``{"policies", "groups", "counts"}``; ties: the lowest policy id)."""
+    policies, groups, counts = confusion.get("policies", []), confusion.get("groups", []), confusion.get("counts", [])
+    out: dict[int, int] = {}
+    if not policies or not groups:
+        return out
+    table = np.asarray(counts, dtype=np.int64).reshape(len(policies), len(groups))
+    for j, gid in enumerate(groups):
+        if table[:, j].sum() > 0:
+            out[int(gid)] = int(policies[int(np.argmax(table[:, j]))])
+    return out
+
+
+def plan_jobs(
+    pairs: Iterable[EvalPair],
+    agnostic: dict[str, int],
+    oracle: dict[int, int],
+    run_seed: int,
+    episodes: int,
+    modes: Sequence[str] = MODES,
+    selections: Sequence[str] = SELECTIONS,
+) -> list[EvalJob]:
+    """One job per (pair, distinct chosen policy, mode); a policy chosen by both selections runs once."""
+    jobs = []
+    for pair in pairs:
+        chosen: dict[int, list[str]] = {}
+        for sel in selections:
+            pid = agnostic.get(pair.key) if sel == "agnostic" else oracle.get(pair.group_id)
+            if pid is not None:
+                chosen.setdefault(int(pid), []).append(sel)
+        seeds = [eval_seed(run_seed, pair.group_id, pair.element_index, i) for i in range(episodes)]
+        for pid, sels in sorted(chosen.items()):
+            for mode in modes:
+                jobs.append(EvalJob(pair, pid, mode, seeds, sels))
+    return jobs
+
+
+def pair_rows(
+    pairs: Sequence[EvalPair],
+    jobs: Sequence[EvalJob],
+    outcomes: Sequence[dict[str, list[float]]],
+    choices: dict[str, dict[str, Any]],
+    oracle: dict[int, int],
+) -> list[dict[str, Any]]:
+    """Per pair: status, chosen policies and, per ``mode/selection``, success and return means."""
+    results: dict[str, dict[str, dict[str, Any]]] = {p.key: {} for p in pairs}
+    for job, out in zip(jobs, outcomes):
+        for sel in job.selections:
+            results[job.pair.key][f"{job.mode}/{sel}"] = {
+                "policy_id": job.policy_id,
+                "success": float(np.mean(out["success"])),
+                "return": float(np.mean(out["return"])),
+                "episodes": len(out["success"]),
+            }
+    rows = []
+    for p in pairs:
+        choice = choices.get(p.key, {})
+        rows.append(
+            {
+                "task": p.task,
+                "g": p.g,
+                "group_id": p.group_id,
+                "status": p.status,
+                "agnostic_policy": choice.get("policy_id"),
+                "agnostic_decision": choice.get("decision"),
+                "agnostic_distance": choice.get("nearest_distance"),
+                "oracle_policy": oracle.get(p.group_id),
+                "results": results[p.key],
+            }
+        )
+    return rows

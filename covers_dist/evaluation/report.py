@@ -1,0 +1,124 @@
+"""Tables of evaluation results: the per-pair grid of one pass and the paper-layout results table.
+
+Plain Python; ``covers-dist eval`` prints them, ``covers-dist report`` writes them into
+``RUN_DIR/report.md`` (docs/RESULTS.md explains how to read it).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from .metrics import pair_success
+
+__all__ = ["PAPER_SUCCESS", "PAPER_AVERAGE", "pairs_table", "results_table", "markdown_table"]
+
+#: COVERS paper (CoRL 2023), success rate per task group, mean +- 95% CI over 3 seeds.
+PAPER_SUCCESS: dict[str, tuple[str, float, float]] = {
+    "plate-slide-v3": ("Plate Slide", 0.95, 0.04),
+    "button-press-topdown-v3": ("Button Press", 0.88, 0.06),
+    "drawer-close-v3": ("Drawer Close", 0.91, 0.05),
+    "reach-v3": ("Goal Reach", 0.95, 0.04),
+}
+PAPER_AVERAGE: tuple[float, float] = (0.94, 0.02)
+
+
+def _f(v: Any, digits: int = 2) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "n/a"
+    if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
+        return str(int(v))
+    return f"{float(v):.{digits}f}"
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A GitHub-flavoured Markdown table (cells are formatted with :func:`_f` unless strings)."""
+    cells = [[c if isinstance(c, str) else _f(c) for c in r] for r in rows]
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in cells]
+    return "\n".join(lines)
+
+
+def pairs_table(ev: dict[str, Any]) -> str:
+    """Every (task, g) of one pass: status, chosen policies, success per mode/selection."""
+    keys = [f"{m}/{s}" for m in ev.get("modes", ["greedy"]) for s in ev.get("selections", ["agnostic"])]
+    header = ["task", "g", "status", "agnostic policy (decision)", "oracle policy"] + [f"success {k}" for k in keys]
+    rows = []
+    for r in ev["pairs"]:
+        choice = "n/a" if r.get("agnostic_policy") is None else f"{r['agnostic_policy']} ({r.get('agnostic_decision')})"
+        oracle = "n/a" if r.get("oracle_policy") is None else str(r["oracle_policy"])
+        rows.append([r["task"], r["g"], r["status"], choice, oracle] + [pair_success(r, k) for k in keys])
+    return markdown_table(header, rows)
+
+
+def _policies_per_group(confusion: dict[str, Any]) -> dict[int, tuple[int, float | None]]:
+    """{group id: (policies that served it, share of its episodes on its main policy)}."""
+    policies, groups = confusion.get("policies", []), confusion.get("groups", [])
+    out: dict[int, tuple[int, float | None]] = {}
+    if not policies or not groups:
+        return out
+    table = np.asarray(confusion.get("counts", []), dtype=float).reshape(len(policies), len(groups))
+    for j, gid in enumerate(groups):
+        col = table[:, j]
+        out[int(gid)] = (int((col > 0).sum()), float(col.max() / col.sum()) if col.sum() else None)
+    return out
+
+
+def results_table(cl: dict[str, Any], bank_metrics: dict[str, Any], tasks: Sequence[str]) -> str:
+    """The paper-layout table: one row per task group and an average row, ours beside the paper's."""
+    per_group = _policies_per_group(bank_metrics.get("confusion") or {})
+    header = [
+        "task group",
+        "success seen",
+        "success held-out",
+        "success (all trainable g)",
+        "oracle success",
+        "return",
+        "policies",
+        "episodes on main policy",
+        "forgetting",
+        "paper success",
+    ]
+    rows = []
+    for gid, task in enumerate(tasks):
+        g = cl["groups"].get(task)
+        if g is None:
+            continue
+        label, paper, ci = PAPER_SUCCESS.get(task, (task, None, None))
+        n_pol, purity = per_group.get(gid, (0, None))
+        rows.append(
+            [
+                label if label == task else f"{label} ({task})",
+                g["success_seen"],
+                g["success_held_out"],
+                g["success"],
+                g["success_oracle"],
+                g["return"],
+                n_pol,
+                purity,
+                cl["forgetting"].get(task),
+                "n/a" if paper is None else f"{paper:.2f} +- {ci:.2f}",
+            ]
+        )
+    paper_avg = all(t in PAPER_SUCCESS for t in tasks) and len(tasks) == len(PAPER_SUCCESS)
+    rows.append(
+        [
+            "**average**",
+            _avg(cl, "success_seen"),
+            cl.get("zero_shot_success"),
+            cl.get("average_success"),
+            _avg(cl, "success_oracle"),
+            _avg(cl, "return"),
+            int(bank_metrics.get("num_policies", 0)),
+            f"ARI {_f(bank_metrics.get('ari'))}",
+            cl.get("average_forgetting"),
+            f"{PAPER_AVERAGE[0]:.2f} +- {PAPER_AVERAGE[1]:.2f}" if paper_avg else "n/a",
+        ]
+    )
+    return markdown_table(header, rows)
+
+
+def _avg(cl: dict[str, Any], name: str) -> float | None:
+    vals = [g[name] for g in cl["groups"].values() if g.get(name) is not None]
+    return float(np.mean(vals)) if vals else None
