@@ -227,3 +227,24 @@ def test_camera_shift_moves_the_view_not_the_robot():
 
 def test_disc_radius_is_about_three_pixels_at_64():
     assert 2.0 < DISC_RADIUS / (2 * 0.36 / 64) < 4.0
+
+
+def test_set_element_matches_a_fresh_env():
+    """An env switched to g in place runs exactly like one built with g (the rollout workers switch)."""
+    switched = MetaWorldTask("plate-slide-v3", "r", max_episode_steps=20)
+    _scripted_actions(switched, 5, seed=1)  # mid-episode under another element
+    for g in ("rf", "e", "r3"):
+        switched.set_element(g)
+        with pytest.raises(RuntimeError, match="reset"):
+            switched.step(np.zeros(4, np.float32))
+        fresh = MetaWorldTask("plate-slide-v3", g, max_episode_steps=20)
+        a, b = _scripted_actions(switched, 20, seed=3), _scripted_actions(fresh, 20, seed=3)
+        fresh.close()
+        assert switched.g.name == g
+        for oa, ob in zip(a["obs"], b["obs"]):
+            np.testing.assert_array_equal(oa["image"], ob["image"])
+            np.testing.assert_array_equal(oa["proprio"], ob["proprio"])
+        assert a["reward"] == b["reward"] and a["success"] == b["success"]
+    with pytest.raises(TypeError, match="GroupElement"):
+        switched.set_element(3)
+    switched.close()

@@ -145,9 +145,7 @@ class MetaWorldTask(gym.Env):
             raise TypeError(f"observable must be True or False, got {observable!r}")
         self.task, self.spec_entry = task, TASKS[task]
         self.observable = observable
-        self.g = GroupElement.from_name(g) if isinstance(g, str) else g
-        if not isinstance(self.g, GroupElement):
-            raise TypeError(f"g must be a GroupElement or an element name, got {g!r}")
+        self.g = _element(g)
         self.g_inv = self.g.inverse()
         self.max_episode_steps = int(max_episode_steps)
         self.render_mode = render_mode
@@ -186,6 +184,26 @@ class MetaWorldTask(gym.Env):
             from .gl_render import GLTopDownRenderer
 
             self._renderer = GLTopDownRenderer(model, self._mw.data, self.view, robot, table, self.render_backend)
+        self._set_element_tables()
+        self._expert: Any = None
+        self._t = -1  # no episode yet
+        self._last_obs: dict[str, np.ndarray] | None = None
+        self._mw_obs: np.ndarray | None = None
+
+    # ---- the group element ---------------------------------------------------------------------
+    def set_element(self, g: GroupElement | str) -> None:
+        """Make this env the transformed task ``g.T`` of the same base task (as if built with ``g``).
+
+        Building a Meta-World env costs ~0.25 s (model compile, static geometry); a worker that
+        meets many elements of one task switches them instead. Takes effect at the next reset.
+        """
+        self.g = _element(g)
+        self.g_inv = self.g.inverse()
+        self._set_element_tables()
+        self._t = -1  # the current episode's observations were for the old element
+
+    def _set_element_tables(self) -> None:
+        """Index tables of g on pixels, proprio and actions (pure functions of g and the size)."""
         size = self.image_size
         # image[i] = base[perm[i]]; base pixel b lands at dest[b]
         index = np.arange(size * size).reshape(size, size)
@@ -200,10 +218,6 @@ class MetaWorldTask(gym.Env):
         inv = self.g_inv.matrix()
         self._act_perm = np.array([int(np.flatnonzero(inv[0])[0]), int(np.flatnonzero(inv[1])[0]), 2, 3])
         self._act_sign = np.array([inv[0].sum(), inv[1].sum(), 1, 1], dtype=np.float32)
-        self._expert: Any = None
-        self._t = -1  # no episode yet
-        self._last_obs: dict[str, np.ndarray] | None = None
-        self._mw_obs: np.ndarray | None = None
 
     # ---- gym API ---------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -350,6 +364,13 @@ class MetaWorldTask(gym.Env):
     def unwrapped_metaworld(self) -> Any:
         """The underlying Meta-World environment (physics of the base task)."""
         return self._mw
+
+
+def _element(g: Any) -> GroupElement:
+    element = GroupElement.from_name(g) if isinstance(g, str) else g
+    if not isinstance(element, GroupElement):
+        raise TypeError(f"g must be a GroupElement or an element name, got {g!r}")
+    return element
 
 
 def _check_goal_site(mw: Any, spec: MetaWorldTaskSpec) -> None:

@@ -107,7 +107,7 @@ def _curve(passes: Sequence[dict[str, Any]], task: str) -> tuple[np.ndarray, np.
         succ = group_success(ev, task)
         if steps is not None and succ is not None:
             pts.append((float(steps), succ))
-    pts.sort()
+    pts.sort(key=lambda p: p[0])  # stable: passes at equal steps (group not trained between) stay in time order
     return np.array([p[0] for p in pts]), np.array([p[1] for p in pts])
 
 

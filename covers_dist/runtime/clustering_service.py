@@ -118,16 +118,36 @@ class ClusteringService:
             self._persist()
             return record
 
-    def what_if(self, obs: dict[str, np.ndarray], group_ids: list[int] | None = None) -> dict[str, Any]:
+    def what_if(
+        self, obs: dict[str, np.ndarray], group_ids: list[int] | None = None, policies: list[int] | None = None
+    ) -> dict[str, Any]:
         """The assignment the bank would make for ``obs``, without changing anything.
 
         ``group_ids`` (true groups, one per frame) are needed only by a ground-truth bank (COVERS-GT).
+        ``policies`` restricts the comparison to those policy ids: an evaluation pass running beside
+        training compares with the policies it has weights for, not with one the bank created since
+        (whose weights may not have arrived yet).
         """
         with self._lock:
             if not len(self.bank):
                 raise LookupError("the policy bank is empty: nothing to compare with yet")
-            groups = group_ids if self.bank.mode == "ground_truth" else None
-            return self.bank.what_if(obs, group_ids=groups).to_dict()
+            groups = None
+            if self.bank.mode == "ground_truth" and group_ids is not None:
+                ids = [int(g) for g in group_ids]
+                # one id per frame, but the bank counts episodes (initial_frames frames each): a batch
+                # of one group is passed as that group, whatever the frames per episode
+                groups = ids[0] if len(set(ids)) == 1 else ids
+            if policies is None:
+                return self.bank.what_if(obs, group_ids=groups).to_dict()
+            keep = {int(p) for p in policies}
+            entries = self.bank.entries
+            if not keep & set(entries):
+                raise LookupError(f"none of the policies {sorted(keep)} is in the bank ({sorted(entries)})")
+            self.bank.entries = {pid: e for pid, e in entries.items() if pid in keep}
+            try:
+                return self.bank.what_if(obs, group_ids=groups).to_dict()
+            finally:
+                self.bank.entries = entries
 
     def record_episodes(self, summaries: list[dict[str, Any]]) -> None:
         with self._lock:

@@ -256,9 +256,10 @@ class Trainer:
                 if self.iteration % self.cfg.runtime.checkpoint_every == 0:
                     self.checkpoint()
             if row and self.evaluation.enabled and not self._stop:  # a final pass, unless interrupted
-                if self.evaluation.last_iteration != self.iteration and not self.evaluation.running:
+                final = self.evaluation.collect(wait=True)  # a pass still running in the background
+                if self.evaluation.last_iteration != self.iteration:
                     self.start_evaluation()
-                final = self.evaluation.collect(wait=True)
+                    final.update(self.evaluation.collect(wait=True))
                 if final:  # the iteration's row again, now with the pass's metrics (plots keep the last)
                     row.update(final)
                     self.backend.call_clustering("report", row)
@@ -286,17 +287,21 @@ class Trainer:
             "groups": {t: dict(v) for t, v in self.group_info.items()},
         }
         episodes_done = self.next_episode
-        executors = self.backend.eval_executors()
+        with torch.random.fork_rng(devices=[]):  # building the evaluation worker's model draws random numbers
+            executors = self.backend.eval_executors()
 
         def choose(obs: dict[str, np.ndarray], groups: list[int]) -> dict[str, Any]:
-            return self.backend.call_clustering("what_if", obs, groups)
+            # only the policies of this pass's weights: on Ray, training goes on meanwhile and the bank
+            # may hold a policy whose weights are not published yet
+            return self.backend.call_clustering("what_if", obs, groups, sorted(weights_map))
 
         def make_pass() -> dict[str, Any]:
             return evaluation_pass(
                 self.cfg, executors, self.stream, episodes_done, choose, confusion, weights_map, info, log=self.log
             )
 
-        self.evaluation.start(self.iteration, make_pass)
+        with torch.random.fork_rng(devices=[]):  # a serial pass runs here: training's torch RNG stays as it was
+            self.evaluation.start(self.iteration, make_pass)
 
     def _last_episode_rows(self) -> list[dict[str, Any]]:
         steps = self.env_steps - sum(s["length"] for s in self._last_rows)

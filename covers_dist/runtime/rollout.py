@@ -56,7 +56,7 @@ class RolloutWorker:
         self.model = build_actor_critic(cfg.network, self.layout)
         self.model.eval()
         self._loaded: tuple[int, int] | None = None  # (policy id, version) of the loaded weights
-        self._envs: OrderedDict[tuple[str, str, int], Any] = OrderedDict()
+        self._envs: OrderedDict[tuple[str, int], Any] = OrderedDict()
         self._max_cached_envs = max_cached_envs
         self.weight_pulls = 0
         self.env_steps = 0
@@ -72,8 +72,18 @@ class RolloutWorker:
 
     # ---- environments -------------------------------------------------------------------------
     def _env(self, task: str, g: str, slot: int) -> Any:
-        key = (task, g, slot)
+        """The env of ``slot`` for base task ``task``, switched to element ``g``: envs that can
+        change their element in place (Meta-World: building one costs ~0.25 s) are kept per
+        (task, slot), others are rebuilt when the element changes."""
+        key = (task, slot)
         env = self._envs.get(key)
+        if env is not None and getattr(getattr(env, "g", None), "name", None) != g:
+            if hasattr(env, "set_element"):
+                env.set_element(GroupElement.from_name(g))
+            else:
+                del self._envs[key]
+                env.close()
+                env = None
         if env is None:
             env = make_task(self.cfg.env, task, GroupElement.from_name(g))
             self._envs[key] = env
