@@ -12,9 +12,10 @@ runs ``episodes`` episodes per selection and mode:
 * mode ``greedy`` (the policy's mean action) and ``stochastic`` (sampled actions).
 
 Evaluation episodes have their own seeds, a pure function of the run seed, the pair and the
-episode number, tagged so that they never coincide with a training episode's seed
-(``SeedSequence([seed, episode_index])`` in the rollout workers); every pass uses the same seeds,
-so successive passes compare like with like. Plain Python: no Ray, no torch.
+episode number (not of g: every element of a group runs the same, exactly equivalent instances),
+tagged so that they never coincide with a training episode's seed (``SeedSequence([seed,
+episode_index])`` in the rollout workers); every pass uses the same seeds, so successive passes
+and the elements of one pass compare like with like. Plain Python: no Ray, no torch.
 """
 
 from __future__ import annotations
@@ -74,9 +75,14 @@ class EvalJob:
         return {**asdict(self), "pair": asdict(self.pair)}
 
 
-def eval_seed(run_seed: int, group_id: int, element_index: int, episode: int) -> int:
-    """The reset seed of evaluation episode ``episode`` of pair (group, element)."""
-    seq = np.random.SeedSequence([int(run_seed), EVAL_SEED_TAG, int(group_id), int(element_index), int(episode)])
+def eval_seed(run_seed: int, group_id: int, episode: int) -> int:
+    """The reset seed of evaluation episode ``episode`` of every pair of group ``group_id``.
+
+    The same for every element g: ``g.T`` reset with it is the exactly equivalent instance of
+    ``T``, so an exactly equivariant policy scores the same on every g, and any difference
+    between transforms is the policy's (or the bank's choice's), not the sample's.
+    """
+    seq = np.random.SeedSequence([int(run_seed), EVAL_SEED_TAG, int(group_id), int(episode)])
     return int(seq.generate_state(1)[0])
 
 
@@ -136,7 +142,7 @@ def plan_jobs(
             pid = agnostic.get(pair.key) if sel == "agnostic" else oracle.get(pair.group_id)
             if pid is not None:
                 chosen.setdefault(int(pid), []).append(sel)
-        seeds = [eval_seed(run_seed, pair.group_id, pair.element_index, i) for i in range(episodes)]
+        seeds = [eval_seed(run_seed, pair.group_id, i) for i in range(episodes)]
         for pid, sels in sorted(chosen.items()):
             for mode in modes:
                 jobs.append(EvalJob(pair, pid, mode, seeds, sels))

@@ -99,7 +99,7 @@ def run_evaluation(
         raise ValueError("no (task, g) pairs to evaluate")
     t0 = time.perf_counter()
     times: dict[str, float] = {}
-    seeds = {p.key: [eval_seed(run_seed, p.group_id, p.element_index, i) for i in range(episodes)] for p in pairs}
+    seeds = {p.key: [eval_seed(run_seed, p.group_id, i) for i in range(episodes)] for p in pairs}
     frames = _gather(executors, "eval_first_frames", [(p, seeds[p.key]) for p in pairs])
     times["frames"] = time.perf_counter() - t0
     t1 = time.perf_counter()
