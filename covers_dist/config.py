@@ -152,6 +152,35 @@ class ClusteringConfig:
         "Feature scaling before distances: buffer = O and B divided by B's mean pairwise feature distance "
         "(scale-free; d_eps in units of the buffer's spread), none = raw features, l2 = unit-length rows.",
     )
+    rule: Literal["threshold", "calibrated"] = _f(
+        "threshold",
+        "Decision rule: threshold = recall the nearest policy when its distance <= d_eps, else a new one (the "
+        "paper's); calibrated = per-policy permutation test of d(O, B_i) against d(O', B_i minus O') for random "
+        "subsets O' of B_i in the policy's current feature space; a new policy only when every policy rejects "
+        "(docs/clustering.md, 'Two decision rules').",
+    )
+    false_split_rate: float = _f(
+        0.001,
+        "Calibrated rule: a policy rejects O when its p-value is <= this (the chance, per policy and "
+        "assignment, that a batch of the policy's own group is rejected); in (0, 0.5).",
+        gt=0.0,
+    )
+    calibration_samples: int = _f(
+        200,
+        "Calibrated rule: random subsets O' drawn per policy and assignment for the null distribution "
+        "(more are drawn, up to ceil(1/false_split_rate) - 1, only when they can change the decision).",
+        min=20,
+    )
+
+    def __post_init__(self) -> None:
+        if self.rule not in ("threshold", "calibrated"):
+            raise ConfigError(f"clustering.rule: expected one of ['threshold', 'calibrated'], got {self.rule!r}")
+        r = self.false_split_rate
+        if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 < r < 0.5:
+            raise ConfigError(f"clustering.false_split_rate={r!r} must be in (0, 0.5)")
+        n = self.calibration_samples
+        if isinstance(n, bool) or not isinstance(n, int) or n < 20:
+            raise ConfigError(f"clustering.calibration_samples={n!r} must be an integer >= 20")
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ Plain Python (numpy, POT, scikit-learn; no torch, Ray or FastAPI): the clusterin
 :class:`PolicyBank`, serial code and tests call it directly. See docs/clustering.md.
 """
 
-from .assignment import DECISIONS, AssignmentRecord, decide
+from .assignment import DECISIONS, RULES, AssignmentRecord, decide, decide_calibrated
 from .bank import MODES, PolicyBank
 from .buffer import REPLACEMENT_RULES, ObservationBuffer
 from .distances import DISTANCES, METRIC_NAMES, get_distance, mahalanobis, mean_euclidean, wasserstein1
@@ -27,10 +27,12 @@ __all__ = [
     "PolicyBank",
     "PolicyEntry",
     "REPLACEMENT_RULES",
+    "RULES",
     "SharedFeatures",
     "adjusted_rand_index",
     "confusion_table",
     "decide",
+    "decide_calibrated",
     "get_distance",
     "load_bank",
     "mahalanobis",

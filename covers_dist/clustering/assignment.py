@@ -14,6 +14,13 @@ Given the distances ``d_i`` from the new initial observations ``O`` to every pol
 In ground-truth mode (the COVERS-GT baseline) the true group id picks the policy instead: the
 first policy of a group is made (``adopt`` / ``new``) the first time the group is met, and later
 batches of that group ``recall`` it. No distances are computed in that mode.
+
+The **calibrated** rule (``clustering.rule: calibrated``, :func:`decide_calibrated`) replaces the
+fixed threshold by a per-policy test: policy ``i`` *accepts* ``O`` when its permutation p-value
+is above ``clustering.false_split_rate`` (the bank computes the p-values, see
+:meth:`~covers_dist.clustering.bank.PolicyBank.calibrated_distances`); the nearest accepting
+policy is recalled, and a new policy is made only when every policy rejects (``recall_at_cap``
+at the cap, as above).
 """
 
 from __future__ import annotations
@@ -22,10 +29,13 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-__all__ = ["AssignmentRecord", "DECISIONS", "decide"]
+__all__ = ["AssignmentRecord", "DECISIONS", "RULES", "decide", "decide_calibrated"]
 
 #: Every decision an assignment can make.
 DECISIONS: tuple[str, ...] = ("adopt", "new", "recall", "recall_at_cap")
+
+#: The decision rules (``clustering.rule``).
+RULES: tuple[str, ...] = ("threshold", "calibrated")
 
 
 def decide(distances: dict[int, float], threshold: float, max_policies: int) -> tuple[int | None, str]:
@@ -37,6 +47,22 @@ def decide(distances: dict[int, float], threshold: float, max_policies: int) -> 
         return nearest, "recall"
     if len(distances) >= max_policies:
         return nearest, "recall_at_cap"
+    return None, "new"
+
+
+def decide_calibrated(
+    distances: dict[int, float], accepted: dict[int, bool], max_policies: int
+) -> tuple[int | None, str]:
+    """The calibrated rule: recall the nearest policy among those that accept ``O`` (ties: lowest
+    id); when none accepts, a new policy (or ``recall_at_cap``, the nearest overall, at the cap)."""
+    if not distances:
+        return None, "adopt"
+    order = sorted(sorted(distances), key=lambda pid: distances[pid])
+    for pid in order:
+        if accepted[pid]:
+            return pid, "recall"
+    if len(distances) >= max_policies:
+        return order[0], "recall_at_cap"
     return None, "new"
 
 
@@ -52,6 +78,14 @@ class AssignmentRecord:
     adopt and in ground-truth mode). ``new`` is True when the call created a bank entry (adopt or
     new); only ``decision == "new"`` asks the caller for a fresh policy. ``true_groups`` holds the
     true group id of each covered episode when the caller gave them (metrics only).
+
+    Calibrated rule only (both None under the threshold rule, and then left out of
+    :meth:`to_dict`, so threshold records and older saved histories read as before):
+    ``p_values`` maps every policy id to its permutation p-value, or to None where the buffer was
+    too small for a null distribution and the threshold decided for that policy; ``calibration``
+    holds ``false_split_rate``, ``samples`` (the configured number of subsets), ``draws``
+    (``{"<id>": subsets drawn}``), ``fallback`` (ids decided by the threshold) and ``accepted``
+    (ids that accepted ``O``).
     """
 
     index: int
@@ -68,6 +102,8 @@ class AssignmentRecord:
     time_unix: float
     true_groups: list[int] | None = None
     nearest_distance: float | None = field(default=None)
+    p_values: dict[int, float | None] | None = None
+    calibration: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.decision not in DECISIONS:
@@ -90,6 +126,12 @@ class AssignmentRecord:
         d["distances"] = {str(k): _json_float(v) for k, v in sorted(self.distances.items())}
         d["nearest_distance"] = None if self.nearest_distance is None else _json_float(self.nearest_distance)
         d["num_episodes"] = self.num_episodes
+        if self.p_values is None:
+            del d["p_values"]
+        else:
+            d["p_values"] = {str(k): (None if v is None else float(v)) for k, v in sorted(self.p_values.items())}
+        if self.calibration is None:
+            del d["calibration"]
         return d
 
     @classmethod
@@ -103,4 +145,6 @@ class AssignmentRecord:
         data["episode_indices"] = [int(e) for e in data["episode_indices"]]
         if data.get("true_groups") is not None:
             data["true_groups"] = [int(g) for g in data["true_groups"]]
+        if data.get("p_values") is not None:
+            data["p_values"] = {int(k): (None if v is None else float(v)) for k, v in data["p_values"].items()}
         return cls(**data)

@@ -9,17 +9,23 @@ whether a fresh one must be made.
 Episodes: an observation batch ``O`` holds the first ``k = initial_frames`` frames of each of
 ``E`` episodes (``n = E * k`` frames, episode by episode). Episodes carry indices (given by the
 caller, or numbered by the bank from 0); their true group ids, when given, feed the metrics only.
+
+Decision rules (``rule``): ``threshold`` (the paper's fixed ``d_eps``) or ``calibrated`` (a
+per-policy permutation test, :meth:`PolicyBank.calibrated_distances`; docs/clustering.md, "Two
+decision rules").
 """
 
 from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 
-from .assignment import AssignmentRecord, decide
+from .assignment import RULES, AssignmentRecord, decide, decide_calibrated
+from .calibration import NullDistance
 from .buffer import REPLACEMENT_RULES, ObservationBuffer, check_obs
 from .distances import get_distance
 from .features import FEATURE_NORMS, FeatureFn, check_features, normalize_pair
@@ -29,6 +35,36 @@ from .policy_entry import PolicyEntry, batch_group, check_int
 __all__ = ["PolicyBank", "MODES"]
 
 MODES: tuple[str, ...] = ("distance", "ground_truth")
+
+#: Below this many buffer frames (or below ``2 |O|``) the calibrated rule has no meaningful null
+#: distribution and the threshold decides for that policy.
+MIN_CALIBRATION_BUFFER = 8
+
+_CALIBRATION_KEY = 0xCA1B  # spawn key of the calibration generator (buffers use entropy [seed, policy id])
+
+
+@dataclass
+class Calibration:
+    """Output of :meth:`PolicyBank.calibrated_distances`."""
+
+    distances: dict[int, float]
+    p_values: dict[int, float | None]
+    accepted: dict[int, bool]
+    draws: dict[int, int]
+
+    def record_info(self, rate: float, samples: int) -> dict[str, Any]:
+        return {
+            "false_split_rate": rate,
+            "samples": samples,
+            "draws": {str(k): v for k, v in sorted(self.draws.items())},
+            "fallback": sorted(k for k, p in self.p_values.items() if p is None),
+            "accepted": sorted(k for k, a in self.accepted.items() if a),
+        }
+
+
+def calibration_generator(seed: int) -> np.random.Generator:
+    """The bank's generator for the calibrated rule's random subsets."""
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=(_CALIBRATION_KEY,))))
 
 
 class PolicyBank:
@@ -47,6 +83,9 @@ class PolicyBank:
         feature_norm: str = "buffer",
         mode: str = "distance",
         seed: int = 0,
+        rule: str = "threshold",
+        false_split_rate: float = 0.001,
+        calibration_samples: int = 200,
     ) -> None:
         get_distance(metric)  # validates the name
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not threshold > 0:
@@ -57,6 +96,11 @@ class PolicyBank:
             raise ValueError(f"feature_norm must be one of {list(FEATURE_NORMS)}, got {feature_norm!r}")
         if mode not in MODES:
             raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r}")
+        if rule not in RULES:
+            raise ValueError(f"rule must be one of {list(RULES)}, got {rule!r}")
+        r = false_split_rate
+        if isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 < r < 0.5:
+            raise ValueError(f"false_split_rate must be a number in (0, 0.5), got {r!r}")
         if feature_fn is not None and not callable(feature_fn):
             raise TypeError(f"feature_fn must be callable, got {type(feature_fn).__name__}")
         self.feature_fn = feature_fn
@@ -69,6 +113,10 @@ class PolicyBank:
         self.feature_norm = feature_norm
         self.mode = mode
         self.seed = check_int("seed", seed, 0)
+        self.rule = rule
+        self.false_split_rate = float(false_split_rate)
+        self.calibration_samples = check_int("calibration_samples", calibration_samples, 20)
+        self.calibration_rng = calibration_generator(self.seed)
         self.entries: dict[int, PolicyEntry] = {}
         self.history: list[AssignmentRecord] = []
         self.current_policy_id: int | None = None
@@ -97,6 +145,9 @@ class PolicyBank:
             feature_norm=c.feature_norm,
             mode=mode,
             seed=cfg.seed,
+            rule=c.rule,
+            false_split_rate=c.false_split_rate,
+            calibration_samples=c.calibration_samples,
         )
 
     # ---- queries --------------------------------------------------------------------------------
@@ -120,9 +171,14 @@ class PolicyBank:
 
     def distances(self, obs: dict[str, np.ndarray]) -> dict[int, float]:
         """``d_i`` between ``obs`` and every policy's buffer, in each policy's feature space."""
-        n = check_obs(obs)
         distance = get_distance(self.metric)
-        out: dict[int, float] = {}
+        pairs = self._feature_pairs(obs)
+        return {pid: distance(*normalize_pair(f_o, f_b, self.feature_norm)) for pid, f_o, f_b in pairs}
+
+    def _feature_pairs(self, obs: dict[str, np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """(policy id, raw features of ``obs``, raw features of ``B_i``) for every policy."""
+        n = check_obs(obs)
+        out: list[tuple[int, np.ndarray, np.ndarray]] = []
         shared = getattr(self.feature_fn, "shared", False)
         f_obs = self._features(self.policy_ids[0], obs, n) if shared and self.entries else None
         for pid in self.policy_ids:
@@ -133,8 +189,50 @@ class PolicyBank:
                 both = {k: np.concatenate([obs[k], buf[k]]) for k in ("image", "proprio")}
                 f = self._features(pid, both, n + len(buf["image"]))
                 f_o, f_b = f[:n], f[n:]
-            out[pid] = distance(*normalize_pair(f_o, f_b, self.feature_norm))
+            out.append((pid, f_o, f_b))
         return out
+
+    def calibrated_distances(self, obs: dict[str, np.ndarray], rng: np.random.Generator) -> Calibration:
+        """The calibrated rule's per-policy test (draws from ``rng``).
+
+        For policy ``i`` with ``m = |O|`` and ``n = |B_i|``: the observed ``d(O, B_i)`` (the bank's
+        metric and feature normalization, features from one encoder pass over ``O`` and ``B_i``)
+        is compared with ``d(O', B_i minus O')`` for random subsets ``O'`` of ``m`` buffer frames,
+        resampled in that same feature space: ``p_i = (1 + #{null >= observed}) / (1 + draws)``,
+        and ``i`` accepts when ``p_i > false_split_rate``. Policies are tested nearest first.
+        ``calibration_samples`` subsets are drawn per policy; while no nearer policy has accepted
+        (so that ``i``'s answer decides), and these leave ``i`` rejecting only because ``1 / (1 +
+        draws)`` cannot go below the rate, the draws continue up to ``ceil(1 / rate) - 1`` in all
+        (the decision is then that of a test with that many draws). With ``n < 2m`` or ``n <``
+        :data:`MIN_CALIBRATION_BUFFER` the threshold decides for ``i`` (p-value None).
+        """
+        distance = get_distance(self.metric)
+        norm, rate, samples = self.feature_norm, self.false_split_rate, self.calibration_samples
+        full = max(samples, math.ceil(1.0 / rate - 1e-9) - 1)  # 1 / (1 + full) <= rate
+        pairs = self._feature_pairs(obs)
+        observed = {pid: distance(*normalize_pair(f_o, f_b, norm)) for pid, f_o, f_b in pairs}
+        cal = Calibration(distances=observed, p_values={}, accepted={}, draws={})
+        decided = False
+        for pid, f_o, f_b in sorted(pairs, key=lambda t: (observed[t[0]], t[0])):
+            d_obs, m, n = observed[pid], len(f_o), len(f_b)
+            if n < 2 * m or n < MIN_CALIBRATION_BUFFER:
+                cal.p_values[pid], cal.draws[pid] = None, 0
+                cal.accepted[pid] = d_obs <= self.threshold
+            else:
+                null = NullDistance(f_b, m, self.metric, norm)  # B_i's features, resampled below
+                bar = d_obs - 1e-9 * (1.0 + abs(d_obs))  # ties (to rounding) count as exceedances
+                count = drawn = 0
+                for target in (samples, full):
+                    for _ in range(target - drawn):
+                        if null(rng.permutation(n)) >= bar:
+                            count += 1
+                    drawn = target
+                    if decided or (1 + count) / (1 + full) > rate:
+                        break  # more draws can no longer change the decision
+                cal.p_values[pid], cal.draws[pid] = (1 + count) / (1 + drawn), drawn
+                cal.accepted[pid] = cal.p_values[pid] > rate
+            decided = decided or cal.accepted[pid]
+        return cal
 
     # ---- the assignment step ----------------------------------------------------------------------
     def _episodes(
@@ -162,7 +260,12 @@ class PolicyBank:
         return episodes, [check_int("group id", g, 0) for g in groups]
 
     def _plan(
-        self, obs: dict[str, np.ndarray], episode_indices: Sequence[int] | None, group_ids: Any, strict: bool = True
+        self,
+        obs: dict[str, np.ndarray],
+        episode_indices: Sequence[int] | None,
+        group_ids: Any,
+        strict: bool = True,
+        rng: np.random.Generator | None = None,
     ) -> tuple[AssignmentRecord, float]:
         t0 = time.perf_counter()
         n = check_obs(obs)
@@ -175,6 +278,8 @@ class PolicyBank:
                 )
         episodes, groups = self._episodes(n, episode_indices, group_ids, strict)
         distances: dict[int, float] = {}
+        p_values: dict[int, float | None] | None = None
+        calibration: dict[str, Any] | None = None
         if self.mode == "ground_truth":
             if groups is None:
                 raise ValueError("ground-truth mode needs group_ids for every assignment")
@@ -187,6 +292,11 @@ class PolicyBank:
                 pid, decision = self.current_policy_id, "recall_at_cap"
             else:
                 pid, decision = None, "new"
+        elif self.rule == "calibrated":
+            cal = self.calibrated_distances(obs, self.calibration_rng if rng is None else rng)
+            distances, p_values = cal.distances, cal.p_values
+            calibration = cal.record_info(self.false_split_rate, self.calibration_samples)
+            pid, decision = decide_calibrated(distances, cal.accepted, self.max_policies)
         else:
             distances = self.distances(obs)
             pid, decision = decide(distances, self.threshold, self.max_policies)
@@ -206,6 +316,8 @@ class PolicyBank:
             wall_time_ms=0.0,
             time_unix=time.time(),
             true_groups=groups,
+            p_values=p_values,
+            calibration=calibration,
         )
         return record, t0
 
@@ -220,7 +332,9 @@ class PolicyBank:
 
         Unlike :meth:`assign`, any number of frames is accepted (a query, not episodes).
         """
-        record, t0 = self._plan(obs, episode_indices, group_ids, strict=False)
+        rng = calibration_generator(self.seed)
+        rng.bit_generator.state = self.calibration_rng.bit_generator.state  # a copy: no state changes
+        record, t0 = self._plan(obs, episode_indices, group_ids, strict=False, rng=rng)
         record.wall_time_ms = (time.perf_counter() - t0) * 1e3
         return record
 
@@ -319,6 +433,11 @@ class PolicyBank:
             "buffer_size": self.buffer_size,
             "replacement": self.replacement,
             "max_policies": self.max_policies,
+            **(
+                {"rule": self.rule, "false_split_rate": self.false_split_rate,
+                 "calibration_samples": self.calibration_samples}
+                if self.rule == "calibrated" else {}
+            ),
             "num_policies": len(self.entries),
             "current_policy_id": self.current_policy_id,
             "assignments": len(self.history),

@@ -41,6 +41,8 @@ FORMAT_NAME = "covers-dist.policy-bank"
 FORMAT_VERSION = 1
 STATE_FILE = "bank.json"
 _SETTINGS = ("metric", "threshold", "buffer_size", "replacement", "max_policies", "initial_frames", "feature_norm")
+#: Decision-rule settings, with the values that banks saved before they existed are read as.
+_RULE_SETTINGS: dict[str, Any] = {"rule": "threshold", "false_split_rate": 0.001, "calibration_samples": 200}
 
 
 class CheckpointError(ValueError):
@@ -102,7 +104,8 @@ def bank_state(bank: PolicyBank) -> tuple[dict[str, Any], dict[str, np.ndarray]]
             }
         )
     state = {
-        "settings": {k: getattr(bank, k) for k in _SETTINGS + ("mode", "seed")},
+        "settings": {k: getattr(bank, k) for k in _SETTINGS + ("mode", "seed") + tuple(_RULE_SETTINGS)},
+        "calibration_rng": bank.calibration_rng.bit_generator.state,
         "current_policy_id": bank.current_policy_id,
         "next_episode": bank.next_episode,
         "entries": entries,
@@ -179,7 +182,8 @@ def load_bank(directory: str | os.PathLike, feature_fn: FeatureFn | None = None,
     """Restore a bank written by :func:`save_bank`.
 
     ``config`` (a :class:`covers_dist.config.Config`), when given, must agree with the saved
-    settings (metric, threshold, buffer size, replacement, cap, initial frames, feature norm, mode);
+    settings (metric, threshold, buffer size, replacement, cap, initial frames, feature norm, mode,
+    decision rule, and under the calibrated rule its false-split rate and samples);
     a difference raises :class:`CheckpointError` naming the fields.
     """
     directory = Path(directory)
@@ -194,10 +198,13 @@ def load_bank(directory: str | os.PathLike, feature_fn: FeatureFn | None = None,
 
 
 def _rebuild(state: dict[str, Any], arrays: dict[str, np.ndarray], feature_fn: Any, config: Any) -> PolicyBank:
-    settings = state["settings"]
+    settings = {**_RULE_SETTINGS, **state["settings"]}  # banks saved before the rule settings existed
     if config is not None:
         expected = PolicyBank.from_config(config)
-        diff = [f"{k}: saved {settings[k]!r}, config {getattr(expected, k)!r}" for k in _SETTINGS + ("mode",)
+        keys = _SETTINGS + ("mode", "rule")
+        if "calibrated" in (settings["rule"], expected.rule):
+            keys += ("false_split_rate", "calibration_samples")
+        diff = [f"{k}: saved {settings[k]!r}, config {getattr(expected, k)!r}" for k in keys
                 if settings[k] != getattr(expected, k)]
         if diff:
             raise CheckpointError("bank checkpoint does not match the config: " + "; ".join(diff))
@@ -233,4 +240,6 @@ def _rebuild(state: dict[str, Any], arrays: dict[str, np.ndarray], feature_fn: A
     bank.history = [AssignmentRecord.from_dict(r) for r in state["history"]]
     bank.labels = {int(e): (int(p), int(g)) for e, p, g in state["labels"]}
     bank.group_policy = {int(g): int(p) for g, p in state["group_policy"]}
+    if state.get("calibration_rng") is not None:  # absent in banks saved before the calibrated rule
+        bank.calibration_rng.bit_generator.state = state["calibration_rng"]
     return bank

@@ -1,0 +1,598 @@
+"""Evaluation of every (task, g): the protocol, the continual-learning metrics (against hand-computed
+answers), passes during a serial training run, `covers-dist eval` / `report` on a saved run (read-only,
+deterministic, clear errors), and evaluation executors on Ray giving the same pass as local ones."""
+
+import hashlib
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from covers_dist.cli import main
+from covers_dist.config import load_config
+from covers_dist.envs.stream import TaskStream
+from covers_dist.evaluation import (
+    LocalExecutors,
+    continual_metrics,
+    eval_pairs,
+    eval_seed,
+    forgetting,
+    forward_transfer,
+    metric_row,
+    oracle_policies,
+    pass_summary,
+    read_passes,
+    run_evaluation,
+)
+from covers_dist.evaluation.protocol import EvalPair, pair_rows, plan_jobs
+from covers_dist.runtime import driver as driver_module
+from covers_dist.runtime.driver import Trainer
+from covers_dist.runtime.rollout import episode_seed
+
+TASKS = ["reach", "push", "avoid"]
+# 3 iterations of 8 episodes x 25 steps; 24 (task, g) pairs, 2 of them held out
+TINY = [
+    "runtime.serial=true",
+    "runtime.num_workers=1",
+    "runtime.envs_per_worker=4",
+    "env.episodes_per_task=8",
+    "env.max_episode_steps=25",
+    "env.held_out=2",
+    "clustering.update_every=8",
+    "ppo.epochs=1",
+    "ppo.minibatch_size=200",
+    "network.channels=[2,4]",
+    "network.hidden=8",
+    "runtime.log_every_s=1000",
+    "runtime.total_env_steps=600",
+    "runtime.checkpoint_every=100",
+    "eval.episodes=2",
+]
+KEYS = {f"{m}/{s}" for m in ("greedy", "stochastic") for s in ("agnostic", "oracle")}
+
+
+def tiny_cfg(run_dir, *extra):
+    return load_config("configs/smoke.yaml", [*TINY, f"runtime.run_dir={run_dir}", *extra])
+
+
+def train(run_dir, *extra):
+    trainer = Trainer(tiny_cfg(run_dir, *extra), log=lambda *_: None)
+    result = trainer.run()
+    trainer.close()
+    assert result["status"] == "finished"
+    return result
+
+
+def lines(path):
+    return [json.loads(x) for x in path.read_text().splitlines()]
+
+
+def snapshot(root):
+    """{relative path: sha256} of every file under ``root``."""
+    files = sorted(p for p in root.rglob("*") if p.is_file())
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, one_torch_thread):
+    """The same tiny serial run with evaluation of 2 of its 3 tasks every 2 iterations (+ the final
+    pass) and without evaluation."""
+    root = tmp_path_factory.mktemp("eval-runs")
+    train(root / "on", "eval.every_iterations=2", "eval.tasks=[reach,push]")
+    train(root / "off", "eval.every_iterations=0")
+    return root / "on", root / "off"
+
+
+# ---- metrics against hand-computed answers -------------------------------------------------------
+def row(task, g, status, success, ret=0.0, oracle=None, stochastic=None):
+    results = {"greedy/agnostic": {"success": success, "return": ret}}
+    if oracle is not None:
+        results["greedy/oracle"] = {"success": oracle, "return": ret}
+    if stochastic is not None:
+        results["stochastic/agnostic"] = {"success": stochastic, "return": ret}
+    return {"task": task, "g": g, "status": status, "results": results}
+
+
+def fake_pass(iteration, rows, groups):
+    return {"iteration": iteration, "pairs": rows, "groups": groups}
+
+
+def seen(*tasks, steps=None):
+    steps = steps or {}
+    return {t: {"first_episode": 0 if t in tasks else None, "env_steps": steps.get(t, 0)} for t in ("A", "B", "C")}
+
+
+def test_pass_summary_separates_seen_held_out_and_trainable_and_averages_seen_groups():
+    ev = fake_pass(
+        5,
+        [
+            row("A", "e", "seen", 1.0, ret=2.0, oracle=1.0, stochastic=0.0),
+            row("A", "r", "seen", 0.5, ret=4.0, oracle=0.0),
+            row("A", "f", "unseen", 0.0, ret=6.0),
+            row("A", "h", "held_out", 1.0, ret=100.0),
+            row("B", "e", "seen", 0.0),
+            row("B", "h", "held_out", 0.0),
+            {"task": "B", "g": "r", "status": "seen", "results": {}},  # no policy ran: left out, not a zero
+            row("C", "e", "unseen", 1.0),  # C not shown yet: not in the average
+        ],
+        seen("A", "B"),
+    )
+    s = pass_summary(ev)
+    a, b, c = s["groups"]["A"], s["groups"]["B"], s["groups"]["C"]
+    assert a["success"] == pytest.approx(0.5)  # trainable pairs (seen + unseen): (1 + 0.5 + 0) / 3
+    assert a["success_seen"] == pytest.approx(0.75)
+    assert a["success_held_out"] == 1.0
+    assert a["success_oracle"] == pytest.approx(0.5)
+    assert a["success_stochastic"] == 0.0
+    assert a["return"] == pytest.approx(4.0)  # held-out return is not a trainable pair's
+    assert b["success"] == 0.0 and b["success_held_out"] == 0.0 and b["success_oracle"] is None
+    assert c["success"] == 1.0 and c["success_seen"] is None and c["success_held_out"] is None
+    assert s["average_success"] == pytest.approx(0.25)  # mean of A (0.5) and B (0.0) only
+    assert s["zero_shot_success"] == pytest.approx(0.5)  # held-out pairs of every group
+
+
+def test_forgetting_is_best_earlier_minus_last_after_first_seen():
+    def p(it, succ, shown=True):
+        return fake_pass(it, [row("A", "e", "seen" if shown else "unseen", succ)], seen(*(["A"] if shown else [])))
+
+    assert forgetting([p(1, 0.9)], "A") is None
+    assert forgetting([p(0, 1.0, shown=False), p(1, 0.9)], "A") is None  # before A was shown: not counted
+    passes = [p(0, 1.0, shown=False), p(1, 0.2), p(2, 0.8), p(3, 0.5)]
+    assert forgetting(passes, "A") == pytest.approx(0.3)
+    assert forgetting([p(1, 0.2), p(2, 0.6)], "A") == pytest.approx(-0.4)  # improved: negative forgetting
+    assert forgetting(passes, "B") is None
+
+
+def curve(points, task="A"):
+    """Passes of ``task`` with (env steps on the group, success), oldest first."""
+    return [fake_pass(i, [row(task, "e", "seen", s)], seen(task, steps={task: n})) for i, (n, s) in enumerate(points)]
+
+
+def test_forward_transfer_trapezoid_rule_over_steps_on_the_group():
+    run = curve([(0, 0.0), (100, 0.5), (200, 1.0)])
+    # AUC over [0, 200]: 100 * (0 + 0.5) / 2 + 100 * (0.5 + 1) / 2 = 100 -> 0.5
+    ref = curve([(100, 0.2), (300, 0.2)])
+    # budget min(200, 300) = 200; the reference's first value from 0, its last held to 200: 0.2
+    assert forward_transfer(run, "A", ref) == pytest.approx((0.5 - 0.2) / (1 - 0.2))
+    # a budget cut by the run (100 steps): AUC 100 * 0.5 / 2 / 100 = 0.25 against 0.2
+    assert forward_transfer(curve([(0, 0.0), (100, 0.5)]), "A", ref) == pytest.approx((0.25 - 0.2) / 0.8)
+    # a group that recurs: two passes at the same steps on it (it was not trained between them,
+    # success fell from 0.8 to 0.2); training resumes from the later value: 100 * 0.8 + 100 * (0.2 + 0.5) / 2
+    recurring = curve([(100, 0.8), (100, 0.2), (200, 0.5)])
+    assert forward_transfer(recurring, "A", curve([(200, 0.0)])) == pytest.approx(115 / 200)
+    # reference = 1 (it solved the task from the start): no normalisation, plain difference
+    perfect = curve([(100, 1.0), (200, 1.0)])
+    assert forward_transfer(run, "A", perfect) == pytest.approx(0.5 - 1.0)
+    assert forward_transfer(perfect, "A", perfect) == 0.0
+    assert forward_transfer(run, "A", []) is None and forward_transfer([], "A", ref) is None
+
+
+def test_continual_metrics_and_metric_row_keys():
+    passes = [
+        fake_pass(
+            1, [row("A", "e", "seen", 1.0, oracle=1.0), row("B", "e", "unseen", 0.0)], seen("A", steps={"A": 100})
+        ),
+        fake_pass(
+            2,
+            [row("A", "e", "seen", 0.5, oracle=1.0), row("B", "e", "seen", 1.0), row("B", "h", "held_out", 0.25)],
+            seen("A", "B", steps={"A": 100, "B": 100}),
+        ),
+    ]
+    cl = continual_metrics(passes, {"A": curve([(100, 0.0)])})
+    assert cl["passes"] == 2 and cl["iteration"] == 2
+    assert cl["average_success"] == pytest.approx(0.75)
+    assert cl["forgetting"] == {"A": pytest.approx(0.5), "B": None}  # B: one pass since it was shown
+    assert cl["average_forgetting"] == pytest.approx(0.5)
+    assert cl["zero_shot_success"] == 0.25
+    r = metric_row(cl)
+    assert set(r) == {
+        "eval/average_success",
+        "eval/zero_shot_success",
+        "eval/average_forgetting",
+        "eval/average_forward_transfer",
+        "eval/success/A",
+        "eval/success_oracle/A",
+        "eval/return/A",
+        "eval/success/B",
+        "eval/success_held_out/B",
+        "eval/return/B",
+        "eval/forgetting/A",
+        "eval/forward_transfer/A",
+    }
+    assert all(isinstance(v, float) for v in r.values())
+    with pytest.raises(ValueError, match="no evaluation passes"):
+        continual_metrics([])
+
+
+def test_read_passes_names_a_corrupt_line_and_keeps_the_newest_pass_per_iteration(tmp_path):
+    log = tmp_path / "eval.jsonl"
+    good = [json.dumps(fake_pass(i, [], {})) for i in (4, 2)]
+    log.write_text("\n".join([good[0], "{not json", good[1]]) + "\n")
+    with pytest.raises(ValueError, match=r"eval\.jsonl:2 is not valid JSON"):
+        read_passes(tmp_path)
+    log.write_text("\n".join([good[0], json.dumps({"iteration": 3}), good[1]]) + "\n")
+    with pytest.raises(ValueError, match=r"eval\.jsonl:2 is not an evaluation pass"):
+        read_passes(tmp_path)
+    again = json.dumps({**fake_pass(4, [], {}), "source": "checkpoint"})
+    log.write_text("\n".join([good[0], good[1], again, '{"iteration": 5, "pa']) + "\n")  # interrupted append
+    passes = read_passes(tmp_path)
+    assert [p["iteration"] for p in passes] == [2, 4] and passes[1]["source"] == "checkpoint"
+    assert read_passes(tmp_path / "none") == []
+    with pytest.raises(FileNotFoundError, match="covers-dist eval"):
+        read_passes(tmp_path / "none", missing_ok=False)
+
+
+# ---- the protocol ------------------------------------------------------------------------------------
+def test_eval_seeds_are_deterministic_and_never_training_seeds():
+    training = {episode_seed(seed, i) for seed in (0, 1) for i in range(5000)}
+    ours = [eval_seed(seed, g, k) for seed in (0, 1) for g in range(3) for k in range(16)]
+    assert not training & set(ours)
+    assert len(set(ours)) == len(ours)
+    assert ours == [eval_seed(seed, g, k) for seed in (0, 1) for g in range(3) for k in range(16)]
+
+
+def test_eval_pairs_mark_held_out_seen_and_unseen_as_the_stream_does():
+    stream = TaskStream(TASKS, "D4", 8, held_out=3, seed=0)
+    held = set(stream.held_out_pairs)
+    assert len(held) == 3
+    for done in (0, 1, 8, 9, 24, 200):
+        pairs = eval_pairs(stream, done)
+        assert len(pairs) == 24 and len({p.key for p in pairs}) == 24
+        scheduled = {stream.task_at(i).key for i in range(done)}
+        assert {(p.task, p.g) for p in pairs if p.status == "held_out"} == held
+        assert {(p.task, p.g) for p in pairs if p.status == "seen"} == scheduled
+        for p in pairs:
+            assert p.group_id == TASKS.index(p.task) and list(stream.group)[p.element_index].name == p.g
+    assert {(p.task, p.g) for p in eval_pairs(stream, 9) if p.status == "seen"} == {
+        stream.task_at(0).key,
+        stream.task_at(8).key,
+    }
+    assert {p.task for p in eval_pairs(stream, 8, ["push"])} == {"push"}
+    with pytest.raises(ValueError, match="nope"):
+        eval_pairs(stream, 8, ["push", "nope"])
+
+
+def test_oracle_policies_from_a_confusion_table():
+    confusion = {"policies": [0, 1, 2], "groups": [0, 1, 2, 3], "counts": [[5, 0, 1, 2], [1, 0, 1, 2], [0, 0, 3, 0]]}
+    # group 1 never trained: no oracle; group 3 is a tie between policies 0 and 1: the lower id
+    assert oracle_policies(confusion) == {0: 0, 2: 2, 3: 0}
+    assert oracle_policies({}) == {}
+
+
+def test_plan_jobs_runs_a_policy_chosen_by_both_selections_once():
+    a = EvalPair("reach", "e", 0, 0, "seen")
+    b = EvalPair("push", "r", 1, 1, "unseen")
+    c = EvalPair("avoid", "f", 2, 5, "held_out")
+    jobs = plan_jobs([a, b, c], {a.key: 1, b.key: 0}, {0: 1, 1: 2}, run_seed=7, episodes=3)
+    got = [(j.pair.key, j.policy_id, j.mode, j.selections) for j in jobs]
+    assert got == [
+        (a.key, 1, "greedy", ["agnostic", "oracle"]),
+        (a.key, 1, "stochastic", ["agnostic", "oracle"]),
+        (b.key, 0, "greedy", ["agnostic"]),
+        (b.key, 0, "stochastic", ["agnostic"]),
+        (b.key, 2, "greedy", ["oracle"]),
+        (b.key, 2, "stochastic", ["oracle"]),
+    ]  # c: no policy for its group and none chosen: nothing to run
+    assert jobs[0].seeds == [eval_seed(7, 0, k) for k in range(3)]
+    # every element of a group runs the same instances (g.T is the exact transform of T)
+    same_group = plan_jobs([a, EvalPair("reach", "r", 0, 1, "unseen")], {}, {0: 1}, run_seed=7, episodes=3)
+    assert same_group[0].seeds == same_group[2].seeds == jobs[0].seeds
+    assert jobs[2].seeds == [eval_seed(7, 1, k) for k in range(3)] != jobs[0].seeds
+    outcomes = [{"success": [1.0, 0.0, 0.0], "return": [3.0, 0.0, 0.0]}] * len(jobs)
+    rows = pair_rows([a, b, c], jobs, outcomes, {}, {0: 1, 1: 2})
+    assert set(rows[0]["results"]) == KEYS and rows[0]["results"]["greedy/oracle"]["success"] == pytest.approx(1 / 3)
+    assert set(rows[1]["results"]) == KEYS and rows[1]["results"]["greedy/oracle"]["policy_id"] == 2
+    assert rows[2]["results"] == {} and rows[2]["oracle_policy"] is None
+
+
+class FakeWorker:
+    """Stands for a RolloutWorker: a frame per seed, success 1 only for policy 5."""
+
+    def __init__(self):
+        self.calls = []
+
+    def eval_first_frames(self, items):
+        self.calls.append(("frames", len(items)))
+        return [{"image": np.zeros((len(s), 1)), "proprio": np.zeros((len(s), 1))} for _, s in items]
+
+    def eval_jobs(self, jobs, weights_map):
+        self.calls.append(("jobs", len(jobs)))
+        return [
+            {"success": [float(weights_map[j.policy_id][1] == "w5")] * len(j.seeds), "return": [0.0] * len(j.seeds)}
+            for j in jobs
+        ]
+
+
+def test_run_evaluation_spreads_work_and_gives_a_new_policy_fresh_weights():
+    pairs = [EvalPair("reach", "e", 0, 0, "seen"), EvalPair("push", "e", 1, 0, "unseen")]
+    workers = [FakeWorker() for _ in range(3)]  # more workers than pairs: the idle one gets an empty list
+
+    def choose(obs, groups):
+        assert len(groups) == len(obs["image"]) == 2
+        return {"policy_id": 0 if groups[0] == 0 else 5, "decision": "recall" if groups[0] == 0 else "new"}
+
+    fresh = lambda pid: (-1, f"w{pid}")  # noqa: E731
+    ev = run_evaluation(LocalExecutors(workers), pairs, choose, {0: 0}, {0: (1, "w0")}, 0, 2, new_policy=fresh)
+    reach, push = ev["pairs"]
+    assert reach["agnostic_policy"] == 0 and set(reach["results"]) == KEYS
+    assert push["agnostic_policy"] == 5 and push["agnostic_decision"] == "new" and push["oracle_policy"] is None
+    assert push["results"]["greedy/agnostic"] == {"policy_id": 5, "success": 1.0, "return": 0.0, "episodes": 2}
+    assert ev["eval_episodes"] == 4 * 2
+    # 2 pairs and 4 jobs dealt round-robin over 3 workers
+    assert [w.calls for w in workers] == [
+        [("frames", 1), ("jobs", 2)],
+        [("frames", 1), ("jobs", 1)],
+        [("frames", 0), ("jobs", 1)],
+    ]
+    # without new_policy, the pair whose choice would be a new policy gets no agnostic result
+    ev = run_evaluation(LocalExecutors([FakeWorker()]), pairs, choose, {0: 0}, {0: (1, "w0")}, 0, 2)
+    assert ev["pairs"][1]["results"] == {}
+    with pytest.raises(ValueError, match="episodes must be >= 1"):
+        run_evaluation(LocalExecutors([FakeWorker()]), pairs, choose, {}, {}, 0, 0)
+
+
+def timeless(record):
+    return {k: v for k, v in record.items() if k not in ("time_unix", "wall_time_ms")}
+
+
+def toy_frames(cfg, task, n):
+    """``n`` first observations of ``task`` (identity element), as a bank takes them."""
+    from covers_dist.envs import make_task
+    from covers_dist.symmetry import GroupElement
+
+    env = make_task(cfg.env, task, GroupElement.from_name("e"))
+    obs = [env.reset(seed=s)[0] for s in range(n)]
+    env.close()
+    return {k: np.stack([o[k] for o in obs]) for k in ("image", "proprio")}
+
+
+def test_ground_truth_what_if_with_several_frames_per_episode(tmp_path):
+    """COVERS-GT with initial_frames=2: an evaluation pass sends one first frame per episode and one
+    true group per frame; the bank, which counts 2 frames per episode, still gets the pair's group."""
+    from covers_dist.runtime.clustering_service import ClusteringService
+
+    cfg = tiny_cfg(tmp_path, "runtime.method=covers-gt", "clustering.initial_frames=2")
+    service = ClusteringService(cfg)
+    four = toy_frames(cfg, "push", 4)
+    service.assign(0, four, [0, 1], [1, 1], {})
+    frames = {k: v[:2] for k, v in four.items()}
+    assert service.what_if(frames, [1, 1])["decision"] == "recall"
+    assert service.what_if({k: v[:3] for k, v in four.items()}, [1, 1, 1])["policy_id"] == 0
+    assert service.what_if(frames, [0, 0])["decision"] == "new"
+    assert len(service.bank.history) == 1  # what-ifs change nothing
+
+
+# ---- a serial training run with evaluation ------------------------------------------------------------
+def test_training_writes_passes_every_two_iterations_and_at_the_end(runs):
+    on, _ = runs
+    passes = lines(on / "eval.jsonl")
+    assert [(p["iteration"], p["source"]) for p in passes] == [(2, "training"), (3, "training")]
+    stream = TaskStream(TASKS, "D4", 8, held_out=2, seed=0)
+    episodes = lines(on / "episodes.jsonl")
+    for ev in passes:
+        assert ev["episodes"] == 8 * ev["iteration"] and ev["episodes_per_job"] == 2
+        assert len(ev["pairs"]) == 16 and {r["task"] for r in ev["pairs"]} == {"reach", "push"}
+        statuses = {(r["task"], r["g"]): r["status"] for r in ev["pairs"]}
+        held = {k for k in stream.held_out_pairs if k[0] != "avoid"}
+        assert {k for k, s in statuses.items() if s == "held_out"} == held
+        scheduled = {stream.task_at(i).key for i in range(ev["episodes"])}
+        assert {k for k, s in statuses.items() if s == "seen"} == {k for k in scheduled if k[0] != "avoid"}
+        # progress per group: env steps on it and its first episode, from the episodes it trained on
+        done = [e for e in episodes if e["episode_index"] < ev["episodes"]]
+        assert sum(g["env_steps"] for g in ev["groups"].values()) == ev["env_steps"] == 25 * len(done)
+        for task, info in ev["groups"].items():
+            mine = [e["episode_index"] for e in done if e["task"] == task]
+            assert info["first_episode"] == (min(mine) if mine else None)
+        jobs = 0
+        for r in ev["pairs"]:
+            trained = ev["groups"][r["task"]]["first_episode"] is not None
+            assert r["agnostic_policy"] is not None and (r["oracle_policy"] is not None) == trained
+            keys = KEYS if trained else {"greedy/agnostic", "stochastic/agnostic"}
+            assert set(r["results"]) == keys
+            for key, res in r["results"].items():
+                assert res["episodes"] == 2 and 0.0 <= res["success"] <= 1.0 and np.isfinite(res["return"])
+                assert res["policy_id"] == r["agnostic_policy" if key.endswith("agnostic") else "oracle_policy"]
+            jobs += 2 * len({r["agnostic_policy"], r["oracle_policy"]} - {None})
+        assert ev["eval_episodes"] == 2 * jobs
+    # every element of a group runs the same seeds, so the one (exactly D4-equivariant) oracle policy
+    # acting greedily gets the same return on every g of a group, held-out ones included
+    for task in ("reach", "push"):
+        returns = [r["results"]["greedy/oracle"]["return"] for r in passes[-1]["pairs"] if r["task"] == task]
+        assert len(returns) == 8 and returns == pytest.approx([returns[0]] * 8, abs=1e-3)
+    metric_rows = lines(on / "metrics.jsonl")
+    assert [r["iteration"] for r in metric_rows] == [1, 2, 3, 3]  # the last iteration again, with the final pass
+    assert not any(k.startswith("eval/") for k in metric_rows[0])
+    for r in (metric_rows[1], metric_rows[3]):
+        assert {"eval/average_success", "eval/zero_shot_success", "eval/success/reach"} <= set(r)
+    summary = pass_summary(passes[-1])
+    assert metric_rows[3]["eval/average_success"] == pytest.approx(summary["average_success"])
+
+
+def test_evaluation_does_not_change_training(runs):
+    on, off = runs
+    assert not (off / "eval.jsonl").exists()
+    cols = ("iteration", "env_steps", "policy_id", "num_policies", "ari", "ppo/policy_loss", "ppo/value_loss")
+    rows_on = [r for r in lines(on / "metrics.jsonl") if "eval/average_success" not in r or r["iteration"] != 3]
+    assert [[r[c] for c in cols] for r in rows_on] == [[r[c] for c in cols] for r in lines(off / "metrics.jsonl")]
+    ckpt_on, ckpt_off = on / "checkpoints" / "ckpt-000003", off / "checkpoints" / "ckpt-000003"
+    # the driver state, random-number generator states included, is the same
+    assert json.loads((ckpt_on / "driver.json").read_text()) == json.loads((ckpt_off / "driver.json").read_text())
+    learners = sorted(p.name for p in (ckpt_off / "learners").iterdir())
+    assert learners == sorted(p.name for p in (ckpt_on / "learners").iterdir())
+    for name in learners:
+        a = torch.load(ckpt_on / "learners" / name, weights_only=False)["ppo"]["model"]
+        b = torch.load(ckpt_off / "learners" / name, weights_only=False)["ppo"]["model"]
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+# ---- covers-dist eval / report ------------------------------------------------------------------------
+def eval_json(capsys, run_dir, *args):
+    capsys.readouterr()
+    assert main(["eval", str(run_dir), "--no-write", "--json", *args]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_eval_command_is_read_only_deterministic_and_matches_the_training_pass(runs, tmp_path, capsys):
+    on, _ = runs
+    run = tmp_path / "run"
+    shutil.copytree(on, run)
+    before = snapshot(run)
+    first = eval_json(capsys, run, "--tasks", "reach")
+    assert snapshot(run) == before  # --no-write: nothing at all
+    assert first["pass"]["iteration"] == 3 and first["pass"]["source"] == "checkpoint ckpt-000003"
+    assert first["metrics"]["passes"] == 2  # the training's pass at iteration 2, then this one
+    # the same bank, weights, pairs and seeds as the training's final pass: the same results
+    final = {(r["task"], r["g"]): r for r in lines(on / "eval.jsonl")[-1]["pairs"]}
+    for r in first["pass"]["pairs"]:
+        t = final[(r["task"], r["g"])]
+        assert r["status"] == t["status"] and r["results"] == t["results"]
+        assert (r["agnostic_policy"], r["agnostic_decision"], r["oracle_policy"]) == (
+            t["agnostic_policy"],
+            t["agnostic_decision"],
+            t["oracle_policy"],
+        )
+        assert r["agnostic_distance"] == pytest.approx(t["agnostic_distance"], rel=1e-5)
+    # again, written this time: the same pass, appended to eval.jsonl and to nothing else
+    assert main(["eval", str(run), "--tasks", "reach"]) == 0
+    out = capsys.readouterr().out
+    assert "| reach |" in out and "average success" in out and "appended to" in out
+    after = snapshot(run)
+    assert {k for k in set(before) | set(after) if before.get(k) != after.get(k)} == {"eval.jsonl"}
+    passes = lines(run / "eval.jsonl")
+    assert len(passes) == 3 and passes[-1]["pairs"] == first["pass"]["pairs"]
+    assert read_passes(run)[-1]["source"] == "checkpoint ckpt-000003"  # the newest pass of iteration 3
+    assert main(["report", str(run)]) == 0
+    report = (run / "report.md").read_text()
+    assert "## Per task group" in report and "| reach |" in report
+
+
+def test_eval_and_report_bad_input_are_clear_errors(runs, tmp_path, capsys):
+    on, off = runs
+    with pytest.raises(SystemExit, match="does not exist"):
+        main(["eval", str(tmp_path / "missing")])
+    assert not (tmp_path / "missing").exists()
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    shutil.copy(on / "config.yaml", bare / "config.yaml")
+    with pytest.raises(SystemExit, match="no valid checkpoint"):
+        main(["eval", str(bare)])
+    assert sorted(p.name for p in bare.iterdir()) == ["config.yaml"]
+    before = snapshot(on)
+    with pytest.raises(SystemExit, match=r"\['nope'\] were never part of this run"):
+        main(["eval", str(on), "--tasks", "reach,nope"])
+    with pytest.raises(SystemExit, match="--episodes must be >= 1, got 0"):
+        main(["eval", str(on), "--episodes", "0"])
+    assert snapshot(on) == before
+    with pytest.raises(SystemExit, match=r"eval\.jsonl does not exist: run `covers-dist eval"):
+        main(["report", str(off)])
+    assert not (off / "report.md").exists()
+
+
+def test_what_if_restricted_to_the_passes_policies(runs):
+    """A pass beside training on Ray compares only with the policies it has weights for: the bank may
+    already hold a policy whose weights the driver has not published yet."""
+    from covers_dist.runtime.saved_run import load_saved_run
+
+    on, _ = runs
+    service = load_saved_run(on, log=lambda *_: None).service
+    assert service.bank.policy_ids == [0, 1]
+    frames = toy_frames(service.cfg, "reach", 2)
+    both = service.what_if(frames, [0, 0])
+    assert set(map(int, both["distances"])) == {0, 1}
+    assert timeless(service.what_if(frames, [0, 0], [0, 1])) == timeless(both)
+    service.models.pop(1)  # an entry without weights, as between the bank's `assign` and the driver's publish
+    with pytest.raises(LookupError, match="no weights received yet for policy 1"):
+        service.what_if(frames, [0, 0])
+    only = service.what_if(frames, [0, 0], [0])
+    assert set(map(int, only["distances"])) == {0}
+    assert only["distances"] == {k: v for k, v in both["distances"].items() if int(k) == 0}
+    assert service.bank.policy_ids == [0, 1]  # the bank is as it was
+    with pytest.raises(LookupError, match="none of the policies"):
+        service.what_if(frames, [0, 0], [7])
+
+
+def test_background_pass_still_running_at_the_end_is_followed_by_a_final_pass(tmp_path, monkeypatch, one_torch_thread):
+    """The Ray path's background thread, here in one process: the pass started at iteration 1 is still
+    running when training ends at iteration 2; the final pass evaluates iteration 2 all the same."""
+    import threading
+
+    release = threading.Event()
+    real = driver_module.evaluation_pass
+    calls = []
+
+    def slow_pass(*args, **kwargs):
+        calls.append(args[7]["iteration"])
+        if len(calls) == 1:
+            assert release.wait(120)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(driver_module, "evaluation_pass", slow_pass)
+    cfg = tiny_cfg(
+        tmp_path, "runtime.total_env_steps=400", "eval.every_iterations=1", "eval.tasks=[reach]", "eval.modes=[greedy]",
+        "eval.episodes=1",
+    )
+    trainer = Trainer(cfg, log=lambda *_: None)
+    trainer.evaluation.background = True
+    collect = trainer.evaluation.collect
+
+    def collect_releasing(wait=False):
+        if wait:
+            release.set()
+        return collect(wait)
+
+    trainer.evaluation.collect = collect_releasing
+    spied = []
+    call = trainer.backend.call_clustering
+
+    def spy(method, *args):
+        if method == "what_if":
+            spied.append(args[2])
+        return call(method, *args)
+
+    trainer.backend.call_clustering = spy
+    assert trainer.run()["status"] == "finished"
+    trainer.close()
+    assert calls == [1, 2]  # iteration 2's due pass was skipped (one at a time); the final pass ran
+    assert [p["iteration"] for p in lines(tmp_path / "eval.jsonl")] == [1, 2]
+    # each pass compares with the policies it had weights for when it started
+    published = json.loads((tmp_path / "checkpoints" / "ckpt-000002" / "driver.json").read_text())["policies"]
+    assert spied == [[0]] * 8 + [published] * 8
+    rows = lines(tmp_path / "metrics.jsonl")
+    assert rows[-1]["iteration"] == 2 and "eval/success/reach" in rows[-1]
+
+
+# ---- Ray ---------------------------------------------------------------------------------------------
+def test_ray_evaluation_executors_give_the_local_pass(runs, ray_local):
+    import dataclasses
+
+    from covers_dist.runtime.backends import RayEvalExecutors
+    from covers_dist.runtime.evaluation import evaluation_pass
+    from covers_dist.runtime.saved_run import load_saved_run
+
+    on, _ = runs
+    saved = load_saved_run(on, log=lambda *_: None)
+    cfg = dataclasses.replace(saved.cfg, eval=dataclasses.replace(saved.cfg.eval, modes=["greedy"]))
+    stream = TaskStream.from_config(cfg.env, cfg.seed)
+    info = {"iteration": saved.driver["iteration"], "groups": saved.driver["groups"]}
+    confusion = saved.service.metrics()["confusion"]
+
+    executors = RayEvalExecutors(dataclasses.replace(cfg, runtime=dataclasses.replace(cfg.runtime, serial=False)))
+    try:
+        remote = evaluation_pass(
+            cfg, executors, stream, saved.driver["next_episode"], lambda o, g: saved.service.what_if(o, g),
+            confusion, saved.weights_map, info, tasks=["push"],
+        )
+    finally:
+        executors.close()
+    # the training's final pass ran on a local executor with the same bank, weights and seeds
+    local = {(r["task"], r["g"]): r for r in lines(on / "eval.jsonl")[-1]["pairs"]}
+    assert len(remote["pairs"]) == 8 and remote["eval_episodes"] > 0
+    for r in remote["pairs"]:
+        t = local[(r["task"], r["g"])]
+        assert set(r["results"]) == {"greedy/agnostic", "greedy/oracle"}
+        assert r["results"] == {k: v for k, v in t["results"].items() if k.startswith("greedy/")}
+        assert [r[k] for k in ("agnostic_policy", "oracle_policy", "status")] == [
+            t[k] for k in ("agnostic_policy", "oracle_policy", "status")
+        ]
