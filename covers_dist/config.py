@@ -171,8 +171,20 @@ class ClusteringConfig:
         "(more are drawn, up to ceil(1/false_split_rate) - 1, only when they can change the decision).",
         min=20,
     )
+    assign_at: Literal["iteration", "reset"] = _f(
+        "iteration",
+        "When a batch is assigned: iteration = after its episodes were rolled out with the current policy "
+        "(the paper's Algorithm 1: after a task switch, episodes are acted by the previous group's policy); "
+        "reset = from the episodes' first frames before they act, so every episode is acted by the policy "
+        "it is assigned to (needs initial_frames = 1: the first frame does not depend on the policy).",
+    )
 
     def __post_init__(self) -> None:
+        if self.assign_at == "reset" and self.initial_frames != 1:
+            raise ConfigError(
+                f"clustering.assign_at=reset needs clustering.initial_frames=1 (got {self.initial_frames}): "
+                "later frames depend on the policy that acts before the assignment"
+            )
         if self.rule not in ("threshold", "calibrated"):
             raise ConfigError(f"clustering.rule: expected one of ['threshold', 'calibrated'], got {self.rule!r}")
         r = self.false_split_rate

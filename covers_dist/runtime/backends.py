@@ -10,8 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..config import Config
-from .rollout import EpisodeSpec
+from .rollout import EpisodeSpec, episode_seed
 
 __all__ = ["SerialBackend", "RayBackend", "RayEvalExecutors", "split_first_frames", "summarize_episode"]
 
@@ -37,6 +39,20 @@ def split_first_frames(episodes: list[dict[str, Any]], k: int) -> tuple[list[dic
     """(first-k observations of each episode, summaries): all that leaves a worker for the driver."""
     firsts = [{"image": ep["image"][:k].copy(), "proprio": ep["proprio"][:k].copy()} for ep in episodes]
     return firsts, [summarize_episode(ep) for ep in episodes]
+
+
+def training_seeds(cfg: Config, specs: list[EpisodeSpec]) -> list[int]:
+    """The reset seeds the rollout workers give these episodes (so their first frames match)."""
+    return [episode_seed(cfg.seed, s.episode_index) for s in specs]
+
+
+def merge_first_frames(parts: list[tuple[dict[str, np.ndarray], list[EpisodeSpec]]]) -> dict[str, np.ndarray]:
+    """Per-worker first observations merged into one batch in episode order."""
+    rows = sorted(
+        ((s.episode_index, f["image"][i], f["proprio"][i]) for f, specs in parts for i, s in enumerate(specs)),
+        key=lambda r: r[0],
+    )
+    return {"image": np.stack([r[1] for r in rows]), "proprio": np.stack([r[2] for r in rows])}
 
 
 class SerialBackend:
@@ -68,6 +84,15 @@ class SerialBackend:
             summaries += s
             episodes += eps
         return firsts, summaries, episodes
+
+    def first_frames(self, plan: list[list[EpisodeSpec]]) -> dict[str, np.ndarray]:
+        """The first observation of every planned episode (episode order), before any policy acts."""
+        parts = [
+            (w.first_observations(specs, training_seeds(self.cfg, specs)), specs)
+            for w, specs in zip(self.workers, plan)
+            if specs
+        ]
+        return merge_first_frames(parts)
 
     def call_clustering(self, method: str, *args: Any) -> Any:
         return getattr(self.clustering, method)(*args)
@@ -134,6 +159,15 @@ class RayBackend:
             summaries += s
         episode_refs = [c[2] for c in calls]  # frames go worker -> learner, not through the driver
         return firsts, summaries, episode_refs
+
+    def first_frames(self, plan: list[list[EpisodeSpec]]) -> dict[str, np.ndarray]:
+        calls = [
+            (w.first_observations.remote(specs, training_seeds(self.cfg, specs)), specs)
+            for w, specs in zip(self.workers, plan)
+            if specs
+        ]
+        frames = self.ray.get([c for c, _ in calls])
+        return merge_first_frames(list(zip(frames, [specs for _, specs in calls])))
 
     def call_clustering(self, method: str, *args: Any) -> Any:
         return self.ray.get(getattr(self.clustering, method).remote(*args))

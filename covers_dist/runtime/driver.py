@@ -54,6 +54,7 @@ class Trainer:
         self.iteration = 0
         self.next_episode = 0
         self.env_steps = 0
+        self.acted_other = 0  # episodes acted by a policy other than the one they were assigned to
         self.current_policy = 0
         self.weight_version = 0
         self.versions: dict[int, int] = {}
@@ -98,6 +99,25 @@ class Trainer:
         n = self.cfg.runtime.num_workers
         return [specs[w::n] for w in range(n)]
 
+    def _sample(self, plan: list[list[EpisodeSpec]], policy_id: int) -> tuple[list, list, Any]:
+        """Roll the plan out with ``policy_id``; first frames and summaries in episode order."""
+        firsts, summaries, episodes = self.backend.sample(
+            plan, policy_id, self.versions[policy_id], self.handles[policy_id]
+        )
+        order = sorted(range(len(summaries)), key=lambda i: summaries[i]["episode_index"])
+        return [firsts[i] for i in order], [summaries[i] for i in order], episodes
+
+    def _assign(self, obs: dict[str, np.ndarray], episodes: list[Any]) -> dict[str, Any]:
+        """The clustering actor's assignment of a batch (episode specs or summaries, in order);
+        a policy it creates gets its learner and published weights at once."""
+        indices = [int(_field(e, "episode_index")) for e in episodes]
+        groups = [int(_field(e, "group_id")) for e in episodes]
+        weights_map = {pid: (self.versions[pid], self.handles[pid]) for pid in self.versions}
+        record = self.backend.call_clustering("assign", self.iteration, obs, indices, groups, weights_map)
+        if int(record["policy_id"]) not in self.versions:
+            self._new_policy(int(record["policy_id"]))
+        return record
+
     def _publish(self, policy_id: int, weights: Any) -> None:
         """New weights to the object store under a new version; the clustering service (features,
         the HTTP service's act) loads them now, workers when they next sample with them."""
@@ -112,32 +132,34 @@ class Trainer:
         self._publish(policy_id, weights)
 
     def step(self) -> dict[str, Any]:
-        """One iteration: sample -> assign -> update -> publish; returns the metrics row."""
-        cur = self.current_policy
-        with self._phase("sample"):
-            plan = self._plan()
-            firsts, summaries, episodes = self.backend.sample(plan, cur, self.versions[cur], self.handles[cur])
-            order = sorted(range(len(summaries)), key=lambda i: summaries[i]["episode_index"])
-            firsts = [firsts[i] for i in order]
-            summaries = [summaries[i] for i in order]
-        obs = {
-            "image": np.concatenate([f["image"] for f in firsts]),
-            "proprio": np.concatenate([f["proprio"] for f in firsts]),
-        }
-        indices = [s["episode_index"] for s in summaries]
-        groups = [s["group_id"] for s in summaries]
-        with self._phase("assign"):
-            weights_map = {pid: (self.versions[pid], self.handles[pid]) for pid in self.versions}
-            record = self.backend.call_clustering("assign", self.iteration, obs, indices, groups, weights_map)
-        chosen = int(record["policy_id"])
-        if chosen not in self.versions:
-            self._new_policy(chosen)
+        """One iteration: sample -> assign -> update -> publish (``clustering.assign_at: reset``:
+        assign -> sample -> update -> publish); returns the metrics row."""
+        plan = self._plan()
+        if self.cfg.clustering.assign_at == "reset":
+            with self._phase("assign"):  # from the first frames, before anything acts
+                specs = sorted((s for part in plan for s in part), key=lambda s: s.episode_index)
+                obs = self.backend.first_frames(plan)
+                record = self._assign(obs, specs)
+            chosen = int(record["policy_id"])
+            with self._phase("sample"):
+                _, summaries, episodes = self._sample(plan, chosen)
+        else:
+            with self._phase("sample"):
+                firsts, summaries, episodes = self._sample(plan, self.current_policy)
+            obs = {
+                "image": np.concatenate([f["image"] for f in firsts]),
+                "proprio": np.concatenate([f["proprio"] for f in firsts]),
+            }
+            with self._phase("assign"):
+                record = self._assign(obs, summaries)
+            chosen = int(record["policy_id"])
         with self._phase("update"):
             stats, _, weights = self.backend.call_learner(chosen, "update", episodes)
         with self._phase("publish"):
             self._publish(chosen, weights)
             for s in summaries:
                 s["assigned_policy"] = chosen
+                self.acted_other += int(s["policy_id"] != chosen)
             self.backend.call_clustering("record_episodes", summaries)
         self._last_rows = summaries
         self.current_policy = chosen
@@ -169,6 +191,7 @@ class Trainer:
             M.NUM_POLICIES: metrics.get("num_policies", len(self.versions)),
             M.ARI: metrics.get("ari", float("nan")),
             M.NEW_POLICY: bool(record.get("new", False)),
+            M.WRONG_POLICY: self.acted_other / max(self.next_episode, 1),
             M.DISTANCE_MIN: min(dists) if dists else float("nan"),
             M.STEPS_PER_S: (self.env_steps - self._steps_at_start) / max(time.monotonic() - self._t_start, 1e-9),
             "wall_time": time.time(),
@@ -193,6 +216,7 @@ class Trainer:
             "weight_version": self.weight_version,
             "policies": sorted(self.versions),
             "groups": self.group_info,
+            "acted_other": self.acted_other,
             "stream": self.stream.state_dict(),
             "numpy_rng": np.random.get_state()[1].tolist(),
             "torch_rng": torch.get_rng_state().tolist(),
@@ -217,6 +241,7 @@ class Trainer:
         self.current_policy = state["current_policy"]
         self.weight_version = state["weight_version"]
         self.group_info.update(state.get("groups", {}))
+        self.acted_other = int(state.get("acted_other", 0))
         self.stream.load_state_dict(state["stream"])
         self.backend.call_clustering("load", str(path / "bank"))
         for pid in state["policies"]:
@@ -313,6 +338,10 @@ class Trainer:
 
     def close(self) -> None:
         self.backend.shutdown()
+
+
+def _field(item: Any, name: str) -> Any:
+    return item[name] if isinstance(item, dict) else getattr(item, name)
 
 
 def train(

@@ -30,6 +30,8 @@ class M:
     NUM_POLICIES = "num_policies"
     ARI = "ari"
     NEW_POLICY = "new_policy"
+    #: fraction of the episodes so far acted by a policy other than the one they were assigned to
+    WRONG_POLICY = "wrong_policy_fraction"
     DISTANCE_MIN = "assign/min_distance"
     SUCCESS = "success"  # success/<task>
     RETURN = "return"  # return/<task>
