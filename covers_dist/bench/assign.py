@@ -1,5 +1,8 @@
 """``covers-dist bench assign``: latency of one assignment step against bank and buffer size.
 
+``--stream`` measures the rule on streams with training encoders instead (false splits, ARI,
+wrong-policy episodes; see :mod:`covers_dist.bench._assign_stream`).
+
 For each metric, bank size (policies) and buffer size, a bank is filled with that many policies
 whose buffers are full, then ``PolicyBank.assign`` is timed on a new batch ``O`` of as many frames
 as a buffer holds (the paper's setting is 128 x 128; ``--obs-frames`` sets another size, e.g. 4
@@ -80,6 +83,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--seeds", type=_ints_or_zero, default=[0, 1, 2], help="--ari: stream/encoder seeds (default: 0,1,2)")
     p.add_argument("--kinds", default="equivariant,cnn", help="--ari: encoder kinds (default: equivariant,cnn)")
+    p.add_argument(
+        "--stream",
+        action="store_true",
+        help="instead of latency: false splits, ARI and wrong-policy episodes on streams with training encoders",
+    )
+    p.add_argument(
+        "--streams", default="toy-one,toy-multi", help="--stream: toy-one,toy-multi,metaworld-one,metaworld-multi"
+    )
+    p.add_argument("--rules", default="threshold,calibrated", help="--stream: decision rules (default: both)")
+    p.add_argument("--assign-at", default="iteration,reset", help="--stream: assignment moments (default: both)")
+    p.add_argument("--steps", type=int, default=8000, help="--stream: env steps per run (default: 8000)")
+    p.add_argument("--batch", type=int, default=4, help="--stream: episodes per assignment (default: 4)")
     add_config_args(p)
     p.set_defaults(func=run)
 
@@ -174,6 +189,10 @@ def run_ari(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.stream:
+        from ._assign_stream import run as run_stream
+
+        return run_stream(args)
     cfg = config_from_args(args)
     if args.ari:
         return run_ari(args, cfg)
