@@ -18,7 +18,9 @@ quickstart config for Meta-World ones; ``--config`` replaces it, ``--set`` adds 
 
 from __future__ import annotations
 
+import contextlib
 import json
+import sys
 import tempfile
 import time
 from typing import Any
@@ -76,7 +78,8 @@ def run_stream(
         t0 = time.perf_counter()
         trainer = Trainer(cfg, log=lambda _m: None)
         try:
-            result = trainer.run()
+            with contextlib.redirect_stdout(sys.stderr):  # the loop's progress lines; stdout is the bench's
+                result = trainer.run()
             assignments = trainer.iteration
             row = result["row"]
         finally:
