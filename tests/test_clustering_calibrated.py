@@ -19,7 +19,7 @@ from covers_dist.clustering.calibration import NullDistance
 from covers_dist.clustering.distances import get_distance
 from covers_dist.clustering.features import normalize_pair
 from covers_dist.clustering.metrics import adjusted_rand_index
-from covers_dist.config import ConfigError, config_from_dict
+from covers_dist.config import ConfigError, config_from_dict, load_config
 
 BATCH = 8
 
@@ -270,3 +270,39 @@ def test_null_distance_matches_generic_path(metric, norm):
         idx = rng.permutation(40)
         want = dist(*normalize_pair(f_b[idx[:8]], f_b[idx[8:]], norm))
         assert null(idx) == pytest.approx(want, rel=1e-9, abs=1e-12)
+
+
+# ---- with training encoders: the real serial loop on one toy group -----------------------------
+def _one_group_run(tmp_path, rule):
+    from covers_dist.runtime.driver import Trainer
+
+    overrides = [
+        "env.tasks=[reach]",
+        "clustering.update_every=4",
+        "ppo.minibatch_size=100",
+        "runtime.serial=true",
+        "runtime.num_workers=1",
+        "runtime.envs_per_worker=4",
+        "runtime.total_env_steps=2900",
+        "runtime.log_every_s=1000",
+        "runtime.checkpoint_every=1000",
+        f"clustering.rule={rule}",
+        f"runtime.run_dir={tmp_path / rule}",
+    ]
+    trainer = Trainer(load_config("configs/smoke.yaml", overrides), log=lambda _m: None)
+    try:
+        return trainer.run()
+    finally:
+        trainer.close()
+
+
+@pytest.mark.slow  # two short training runs: about 1.5 min alone on 2 cores (`make test-slow`)
+def test_training_encoders_split_one_group_under_the_threshold_not_under_calibrated(tmp_path, one_torch_thread):
+    """29 assignments of toy reach alone while the policy's encoder trains (seed 0): the fixed d_eps
+    creates a second policy (W1 1.41 at assignment 28, against 0.45-0.68 before), the calibrated
+    test compares that draw with the buffer's own spread in the same drifted features and recalls."""
+    threshold = _one_group_run(tmp_path, "threshold")
+    calibrated = _one_group_run(tmp_path, "calibrated")
+    assert threshold["num_policies"] == 2, threshold["policy_counts"]
+    assert calibrated["num_policies"] == 1, calibrated["policy_counts"]
+    assert calibrated["ari"] == 1.0
