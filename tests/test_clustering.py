@@ -226,6 +226,24 @@ def test_max_policies_recalls_the_nearest():
     assert r.nearest_distance == r.distances[1] > r.threshold
 
 
+def test_what_if_restricted_to_some_policies_keeps_the_banks_ids_and_cap():
+    """A what-if compared with some policies only: a "new" gets the id after the bank's largest (not
+    one of the left-out policies'), and the bank's own size decides recall_at_cap."""
+    rng = np.random.default_rng(3)
+    bank = _bank(max_policies=4)
+    for g in (0, 1, 2):
+        bank.assign(_cluster(rng, g), group_ids=g)
+    far = _cluster(rng, 2)  # only group 2's policy is near: it is left out below
+    r = bank.what_if(far, policies=[0, 1])
+    assert (r.decision, r.policy_id, sorted(r.distances)) == ("new", 3, [0, 1])
+    bank.max_policies = 3
+    r = bank.what_if(far, policies=[0, 1])
+    assert r.decision == "recall_at_cap" and r.policy_id in (0, 1)
+    assert bank.what_if(far).decision == "recall"
+    with pytest.raises(LookupError, match="none of the policies"):
+        bank.what_if(far, policies=[9])
+
+
 def test_what_if_changes_nothing():
     rng = np.random.default_rng(2)
     bank = _bank(replacement="reservoir", buffer_size=4)

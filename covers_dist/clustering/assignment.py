@@ -38,30 +38,37 @@ DECISIONS: tuple[str, ...] = ("adopt", "new", "recall", "recall_at_cap")
 RULES: tuple[str, ...] = ("threshold", "calibrated")
 
 
-def decide(distances: dict[int, float], threshold: float, max_policies: int) -> tuple[int | None, str]:
-    """Apply the rule above: returns (recalled policy id or None for adopt/new, decision)."""
+def decide(
+    distances: dict[int, float], threshold: float, max_policies: int, num_policies: int | None = None
+) -> tuple[int | None, str]:
+    """Apply the rule above: returns (recalled policy id or None for adopt/new, decision).
+
+    ``num_policies``: the bank's size, when ``distances`` covers only some of its policies (a
+    what-if restricted to some policies); default ``len(distances)``.
+    """
     if not distances:
         return None, "adopt"
     nearest = min(sorted(distances), key=lambda pid: distances[pid])
     if distances[nearest] <= threshold:
         return nearest, "recall"
-    if len(distances) >= max_policies:
+    if (len(distances) if num_policies is None else num_policies) >= max_policies:
         return nearest, "recall_at_cap"
     return None, "new"
 
 
 def decide_calibrated(
-    distances: dict[int, float], accepted: dict[int, bool], max_policies: int
+    distances: dict[int, float], accepted: dict[int, bool], max_policies: int, num_policies: int | None = None
 ) -> tuple[int | None, str]:
     """The calibrated rule: recall the nearest policy among those that accept ``O`` (ties: lowest
-    id); when none accepts, a new policy (or ``recall_at_cap``, the nearest overall, at the cap)."""
+    id); when none accepts, a new policy (or ``recall_at_cap``, the nearest overall, at the cap;
+    ``num_policies`` as in :func:`decide`)."""
     if not distances:
         return None, "adopt"
     order = sorted(sorted(distances), key=lambda pid: distances[pid])
     for pid in order:
         if accepted[pid]:
             return pid, "recall"
-    if len(distances) >= max_policies:
+    if (len(distances) if num_policies is None else num_policies) >= max_policies:
         return order[0], "recall_at_cap"
     return None, "new"
 

@@ -169,19 +169,33 @@ class PolicyBank:
             raise TypeError(f"feature_fn must be callable, got {type(feature_fn).__name__}")
         self.feature_fn = feature_fn
 
-    def distances(self, obs: dict[str, np.ndarray]) -> dict[int, float]:
-        """``d_i`` between ``obs`` and every policy's buffer, in each policy's feature space."""
+    def distances(self, obs: dict[str, np.ndarray], policies: Sequence[int] | None = None) -> dict[int, float]:
+        """``d_i`` between ``obs`` and every policy's buffer (or those in ``policies``), in each
+        policy's feature space."""
         distance = get_distance(self.metric)
-        pairs = self._feature_pairs(obs)
+        pairs = self._feature_pairs(obs, policies)
         return {pid: distance(*normalize_pair(f_o, f_b, self.feature_norm)) for pid, f_o, f_b in pairs}
 
-    def _feature_pairs(self, obs: dict[str, np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
-        """(policy id, raw features of ``obs``, raw features of ``B_i``) for every policy."""
+    def _compared(self, policies: Sequence[int] | None) -> list[int]:
+        """The policy ids an assignment compares with: all, or those of ``policies`` in the bank."""
+        if policies is None:
+            return self.policy_ids
+        keep = {int(p) for p in policies}
+        ids = [pid for pid in self.policy_ids if pid in keep]
+        if self.entries and not ids:
+            raise LookupError(f"none of the policies {sorted(keep)} is in the bank ({self.policy_ids})")
+        return ids
+
+    def _feature_pairs(
+        self, obs: dict[str, np.ndarray], policies: Sequence[int] | None = None
+    ) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """(policy id, raw features of ``obs``, raw features of ``B_i``) for every compared policy."""
         n = check_obs(obs)
         out: list[tuple[int, np.ndarray, np.ndarray]] = []
+        ids = self._compared(policies)
         shared = getattr(self.feature_fn, "shared", False)
-        f_obs = self._features(self.policy_ids[0], obs, n) if shared and self.entries else None
-        for pid in self.policy_ids:
+        f_obs = self._features(ids[0], obs, n) if shared and ids else None
+        for pid in ids:
             buf = self.entries[pid].buffer.observations()
             if f_obs is not None:
                 f_o, f_b = f_obs, self._features(pid, buf, len(buf["image"]))
@@ -192,7 +206,9 @@ class PolicyBank:
             out.append((pid, f_o, f_b))
         return out
 
-    def calibrated_distances(self, obs: dict[str, np.ndarray], rng: np.random.Generator) -> Calibration:
+    def calibrated_distances(
+        self, obs: dict[str, np.ndarray], rng: np.random.Generator, policies: Sequence[int] | None = None
+    ) -> Calibration:
         """The calibrated rule's per-policy test (draws from ``rng``).
 
         For policy ``i`` with ``m = |O|`` and ``n = |B_i|``: the observed ``d(O, B_i)`` (the bank's
@@ -209,7 +225,7 @@ class PolicyBank:
         distance = get_distance(self.metric)
         norm, rate, samples = self.feature_norm, self.false_split_rate, self.calibration_samples
         full = max(samples, math.ceil(1.0 / rate - 1e-9) - 1)  # 1 / (1 + full) <= rate
-        pairs = self._feature_pairs(obs)
+        pairs = self._feature_pairs(obs, policies)
         observed = {pid: distance(*normalize_pair(f_o, f_b, norm)) for pid, f_o, f_b in pairs}
         cal = Calibration(distances=observed, p_values={}, accepted={}, draws={})
         decided = False
@@ -266,6 +282,7 @@ class PolicyBank:
         group_ids: Any,
         strict: bool = True,
         rng: np.random.Generator | None = None,
+        policies: Sequence[int] | None = None,
     ) -> tuple[AssignmentRecord, float]:
         t0 = time.perf_counter()
         n = check_obs(obs)
@@ -293,13 +310,13 @@ class PolicyBank:
             else:
                 pid, decision = None, "new"
         elif self.rule == "calibrated":
-            cal = self.calibrated_distances(obs, self.calibration_rng if rng is None else rng)
+            cal = self.calibrated_distances(obs, self.calibration_rng if rng is None else rng, policies)
             distances, p_values = cal.distances, cal.p_values
             calibration = cal.record_info(self.false_split_rate, self.calibration_samples)
-            pid, decision = decide_calibrated(distances, cal.accepted, self.max_policies)
+            pid, decision = decide_calibrated(distances, cal.accepted, self.max_policies, len(self.entries))
         else:
-            distances = self.distances(obs)
-            pid, decision = decide(distances, self.threshold, self.max_policies)
+            distances = self.distances(obs, policies)
+            pid, decision = decide(distances, self.threshold, self.max_policies, len(self.entries))
         if pid is None:
             pid = 0 if not self.entries else max(self.entries) + 1
         record = AssignmentRecord(
@@ -327,14 +344,17 @@ class PolicyBank:
         *,
         episode_indices: Sequence[int] | None = None,
         group_ids: int | Sequence[int] | None = None,
+        policies: Sequence[int] | None = None,
     ) -> AssignmentRecord:
         """The record :meth:`assign` would return for ``obs``, without changing any state.
 
         Unlike :meth:`assign`, any number of frames is accepted (a query, not episodes).
+        ``policies`` restricts the comparison to those policy ids (the bank's size still decides
+        ``recall_at_cap``, and a ``new`` policy still gets the id after the bank's largest).
         """
         rng = calibration_generator(self.seed)
         rng.bit_generator.state = self.calibration_rng.bit_generator.state  # a copy: no state changes
-        record, t0 = self._plan(obs, episode_indices, group_ids, strict=False, rng=rng)
+        record, t0 = self._plan(obs, episode_indices, group_ids, strict=False, rng=rng, policies=policies)
         record.wall_time_ms = (time.perf_counter() - t0) * 1e3
         return record
 

@@ -137,17 +137,7 @@ class ClusteringService:
                 # one id per frame, but the bank counts episodes (initial_frames frames each): a batch
                 # of one group is passed as that group, whatever the frames per episode
                 groups = ids[0] if len(set(ids)) == 1 else ids
-            if policies is None:
-                return self.bank.what_if(obs, group_ids=groups).to_dict()
-            keep = {int(p) for p in policies}
-            entries = self.bank.entries
-            if not keep & set(entries):
-                raise LookupError(f"none of the policies {sorted(keep)} is in the bank ({sorted(entries)})")
-            self.bank.entries = {pid: e for pid, e in entries.items() if pid in keep}
-            try:
-                return self.bank.what_if(obs, group_ids=groups).to_dict()
-            finally:
-                self.bank.entries = entries
+            return self.bank.what_if(obs, group_ids=groups, policies=policies).to_dict()
 
     def record_episodes(self, summaries: list[dict[str, Any]]) -> None:
         with self._lock:
