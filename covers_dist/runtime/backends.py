@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
-from .rollout import EpisodeSpec, episode_seed
+from .rollout import EpisodeSpec, training_seeds
 
 __all__ = ["SerialBackend", "RayBackend", "RayEvalExecutors", "split_first_frames", "summarize_episode"]
 
@@ -39,11 +39,6 @@ def split_first_frames(episodes: list[dict[str, Any]], k: int) -> tuple[list[dic
     """(first-k observations of each episode, summaries): all that leaves a worker for the driver."""
     firsts = [{"image": ep["image"][:k].copy(), "proprio": ep["proprio"][:k].copy()} for ep in episodes]
     return firsts, [summarize_episode(ep) for ep in episodes]
-
-
-def training_seeds(cfg: Config, specs: list[EpisodeSpec]) -> list[int]:
-    """The reset seeds the rollout workers give these episodes (so their first frames match)."""
-    return [episode_seed(cfg.seed, s.episode_index) for s in specs]
 
 
 def merge_first_frames(parts: list[tuple[dict[str, np.ndarray], list[EpisodeSpec]]]) -> dict[str, np.ndarray]:
@@ -88,7 +83,7 @@ class SerialBackend:
     def first_frames(self, plan: list[list[EpisodeSpec]]) -> dict[str, np.ndarray]:
         """The first observation of every planned episode (episode order), before any policy acts."""
         parts = [
-            (w.first_observations(specs, training_seeds(self.cfg, specs)), specs)
+            (w.first_observations(specs, training_seeds(self.cfg.seed, specs)), specs)
             for w, specs in zip(self.workers, plan)
             if specs
         ]
@@ -162,7 +157,7 @@ class RayBackend:
 
     def first_frames(self, plan: list[list[EpisodeSpec]]) -> dict[str, np.ndarray]:
         calls = [
-            (w.first_observations.remote(specs, training_seeds(self.cfg, specs)), specs)
+            (w.first_observations.remote(specs, training_seeds(self.cfg.seed, specs)), specs)
             for w, specs in zip(self.workers, plan)
             if specs
         ]

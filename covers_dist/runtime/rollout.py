@@ -23,7 +23,7 @@ from ..ppo.rollout import run_lockstep
 from ..symmetry import GroupElement
 from .ray_setup import resolve_weights
 
-__all__ = ["EpisodeSpec", "RolloutWorker", "episode_seed"]
+__all__ = ["EpisodeSpec", "RolloutWorker", "episode_seed", "training_seeds"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +34,11 @@ class EpisodeSpec:
     task: str
     g: str
     group_id: int
+
+
+def training_seeds(base_seed: int, specs: list[EpisodeSpec]) -> list[int]:
+    """The reset seeds of these training episodes (a pure function of their indices)."""
+    return [episode_seed(base_seed, s.episode_index) for s in specs]
 
 
 def _eval_specs(pair: EvalPair, n: int) -> list[EpisodeSpec]:
@@ -141,7 +146,7 @@ class RolloutWorker:
     ) -> list[dict[str, Any]]:
         envs = [self._env(s.task, s.g, slot) for slot, s in enumerate(specs)]
         if seeds is None:
-            seeds = [episode_seed(self.cfg.seed, s.episode_index) for s in specs]
+            seeds = training_seeds(self.cfg.seed, specs)
         gen = torch.Generator().manual_seed(int(seeds[0]) % (2**63))
         episodes = run_lockstep(self.model, envs, seeds, gen, deterministic)
         for ep, spec in zip(episodes, specs):
