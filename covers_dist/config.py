@@ -103,6 +103,11 @@ class NetworkConfig:
     hidden: int = _f(
         32, "Regular fields of the fused head layer; its group pooling gives the `hidden` invariant features.", min=1
     )
+    space_to_depth: Literal[1, 2, 4] = _f(
+        1,
+        "Stem: fold each k x k pixel block into channels before the first block (lossless, exactly "
+        "equivariant; every block then runs on a k times smaller map, about k^2 fewer FLOPs). 1: off.",
+    )
     init_log_std: float = _f(-0.5, "Initial log standard deviation of the Gaussian policy.")
     cnn_width: float | None = _f(
         None,
@@ -132,6 +137,12 @@ class PPOConfig:
         "Rewards are multiplied by this before GAE, so value targets stay O(1) (toy: about -0.5 per step; "
         "Meta-World: 0..10 per step, try 0.01).",
         gt=0.0,
+    )
+    precision: Literal["auto", "fp32", "bf16"] = _f(
+        "auto",
+        "Update arithmetic: bf16 autocast of the forward pass (fp32 weights, optimizer and loss) or fp32. "
+        "auto: bf16 on a CUDA learner or a CPU with native bf16 (AVX-512 BF16 or AMX), else fp32 "
+        "(emulated bf16 is several times slower). Rollout inference is always fp32.",
     )
 
 
@@ -208,6 +219,14 @@ class RuntimeConfig:
     run_dir: str = _f("runs/latest", "Directory for metrics, checkpoints and plots.")
     checkpoint_every: int = _f(10, "Update steps between checkpoints.", min=1)
     torch_threads: int = _f(1, "torch intra-op threads per rollout worker and clustering process.", min=1)
+    pipeline: bool = _f(
+        True,
+        "Overlap each iteration's sampling with the previous iteration's PPO update (sampling then uses "
+        "weights one update old; PPO's ratio corrects for it). false: the strict sequential order of Algorithm 1.",
+    )
+    learner_num_cpus: float = _f(
+        0.0, "CPUs reserved by each learner actor on Ray (0: none, it shares the workers' cores).", min=0.0
+    )
     learner_threads: int = _f(
         2, "torch intra-op threads per learner (updates run while the workers wait, so they may use the cores).", min=1
     )
@@ -291,14 +310,14 @@ def _validate_cross_fields(cfg: Config) -> None:
             f"network.group={cfg.network.group} does not contain env.group={cfg.env.group}: "
             "the policy could not treat every transformed task as equivalent"
         )
-    size = cfg.env.image_size
-    if size % (2 ** len(cfg.network.channels)):
-        raise ConfigError(
-            f"env.image_size={size} must be divisible by 2**len(network.channels)="
-            f"{2 ** len(cfg.network.channels)} (each conv block halves the image exactly)"
-        )
     if any(c < 1 for c in cfg.network.channels):
         raise ConfigError(f"network.channels={cfg.network.channels}: every entry must be >= 1")
+    from .models.equivariant import block_sizes  # plain arithmetic, no escnn import
+
+    try:
+        block_sizes(cfg.env.image_size, len(cfg.network.channels), cfg.network.space_to_depth)
+    except ValueError as exc:
+        raise ConfigError(f"env.image_size / network.channels / network.space_to_depth: {exc}") from None
     if cfg.clustering.threshold is not None and cfg.clustering.threshold <= 0:
         raise ConfigError(f"clustering.threshold={cfg.clustering.threshold} must be > 0")
     if cfg.runtime.method in ("covers-cnn", "cnn") and cfg.network.kind != "cnn":

@@ -240,3 +240,68 @@ def test_bad_inputs_fail_with_clear_errors(nets):
         model({"proprio": obs["proprio"]})
     with pytest.raises(ValueError, match="actions"):
         model.evaluate_actions(obs, torch.zeros(2, 3))
+
+
+@pytest.mark.parametrize("k", [2, 4])
+@pytest.mark.parametrize("layout_name", list(LAYOUTS))
+def test_space_to_depth_stem_is_exactly_equivariant_on_every_path(layout_name, k):
+    layout = LAYOUTS[layout_name]
+    cfg = NetworkConfig(channels=[4, 8, 8, 16], hidden=16, space_to_depth=k)
+    model = build_actor_critic(cfg, layout, seed=3)
+    obs = toy_obs(3) if layout_name == "toy32" else random_obs(layout, 3, seed=5)
+    for mode in (True, False):
+        model.train(mode)
+        assert max_error(equivariance_errors(model, obs)) < TOL
+    assert max_error(equivariance_errors(model, obs, fast=True)) < TOL
+    actions, _, values = model.act(obs, deterministic=True)
+    with torch.no_grad():
+        mean, _, value = model(to_torch(obs))
+    np.testing.assert_allclose(actions, mean.numpy(), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(values, value.numpy(), rtol=1e-4, atol=1e-6)
+    twin = build_actor_critic(cfg, layout, kind="cnn", seed=3)
+    assert twin(to_torch(obs))[0].shape == mean.shape  # the twin takes the same stem
+    assert max_error(equivariance_errors(twin, obs, group="D4")) > 0.01
+
+
+@pytest.mark.parametrize("group", ["D4", "C4", "D1"])
+def test_space_to_depth_representation_is_how_escnn_moves_the_folded_image(group):
+    from escnn.nn import FieldType, GeometricTensor
+
+    from covers_dist.models.equivariant import space_to_depth_repr
+    from covers_dist.symmetry import escnn_gspace
+
+    gs = escnn_gspace(group)
+    rho = space_to_depth_repr(gs, 2)
+    assert rho.size == 4 and space_to_depth_repr(gs, 2) is rho  # built once per group
+    image = torch.rand(1, 3, 8, 8, dtype=torch.float64)
+    plain = FieldType(gs, 3 * [gs.trivial_repr])
+    folded = FieldType(gs, 3 * [rho])
+    for h in gs.fibergroup.elements:
+        moved_then_folded = torch.nn.functional.pixel_unshuffle(plain.transform(image, h), 2)
+        folded_then_moved = GeometricTensor(torch.nn.functional.pixel_unshuffle(image, 2), folded).transform(h).tensor
+        torch.testing.assert_close(moved_then_folded, folded_then_moved, rtol=0, atol=1e-9)
+
+
+def test_space_to_depth_cuts_the_work_and_block_sizes_validate():
+    from covers_dist.models.equivariant import block_sizes
+
+    assert block_sizes(64, 6, 1) == ([64, 32, 16, 8, 4, 2], 1)
+    assert block_sizes(64, 6, 2) == ([32, 16, 8, 4, 2, 1], 1)
+    assert block_sizes(64, 4, 4) == ([16, 8, 4, 2], 1)
+    assert block_sizes(48, 4, 1) == ([48, 24, 12, 6], 3)
+    with pytest.raises(ValueError, match="would pool a 5 x 5 map"):
+        block_sizes(40, 4, 1)
+    with pytest.raises(ValueError, match="divisible by space_to_depth=4"):
+        block_sizes(66, 2, 4)
+    small = build_actor_critic(NetworkConfig(space_to_depth=2), METAWORLD_LAYOUT, seed=0)
+    full = build_actor_critic(NetworkConfig(space_to_depth=1), METAWORLD_LAYOUT, seed=0)
+    assert small.num_parameters() < full.num_parameters()
+    from torch.utils.flop_counter import FlopCounterMode
+
+    obs = to_torch(random_obs(METAWORLD_LAYOUT, 2))
+    counts = []
+    for model in (full, small):
+        with FlopCounterMode(display=False) as counter:
+            model(obs)
+        counts.append(counter.get_total_flops())
+    assert counts[1] < counts[0] / 2.5  # about k^2 fewer FLOPs per sample

@@ -252,3 +252,41 @@ def test_bench_learner_prints_json(capsys):
     assert kinds == {"equivariant", "cnn", "cnn_matched_channels"}
     summary = [row for row in rows if row["kind"] == "summary"]
     assert summary and summary[0]["update_ratio_equivariant_to_cnn"] > 0
+
+
+def test_precision_resolves_to_native_bf16_only_and_a_bf16_update_keeps_fp32_weights(tmp_path):
+    from covers_dist.config import NetworkConfig, PPOConfig
+    from covers_dist.envs.toy import toy_layout
+    from covers_dist.models import build_actor_critic
+    from covers_dist.ppo import PPOLearner
+    from covers_dist.ppo.learner import native_bf16_cpu, resolve_precision
+
+    flags = tmp_path / "cpuinfo"
+    flags.write_text("processor: 0\nflags\t\t: fpu sse avx2 avx512f avx512_bf16\n")
+    assert native_bf16_cpu(str(flags))
+    flags.write_text("processor: 0\nflags\t\t: fpu sse avx2\n")
+    assert not native_bf16_cpu(str(flags))
+    assert not native_bf16_cpu(str(tmp_path / "missing"))
+    assert resolve_precision("fp32", "cpu") == "fp32" and resolve_precision("bf16", "cpu") == "bf16"
+    assert resolve_precision("auto", "cpu") == ("bf16" if native_bf16_cpu() else "fp32")
+    with pytest.raises(ValueError, match="precision must be"):
+        resolve_precision("fp16", "cpu")
+
+    model = build_actor_critic(NetworkConfig(channels=[2, 2], hidden=4), toy_layout(16), seed=0)
+    learner = PPOLearner(model, PPOConfig(epochs=1, minibatch_size=32, precision="bf16"))
+    rng = np.random.default_rng(0)
+    t = 40
+    obs = {"image": rng.integers(0, 256, (t + 1, 16, 16, 3), dtype=np.uint8),
+           "proprio": rng.normal(size=(t + 1, model.layout.proprio_dim)).astype(np.float32)}
+    actions, logp, values = model.act(obs)
+    episode = {**obs, "action": actions[:t], "logprob": logp[:t], "value": values,
+               "reward": rng.normal(size=t).astype(np.float32), "success": np.zeros(t, np.float32),
+               "terminated": False, "truncated": True}  # fmt: skip
+    before = model.get_weights()
+    stats = learner.update([episode])
+    assert stats["bf16"] and stats["optimizer_steps"] >= 1 and np.isfinite(stats["policy_loss"])
+    after = model.get_weights()
+    assert all(w.dtype == torch.float32 for w in after.values())
+    assert any(not torch.equal(before[k], after[k]) for k in before)
+    # at the first minibatch the policy is the behaviour policy: the fp32 log-prob path keeps the ratio ~1
+    assert stats["approx_kl"] < 1e-2

@@ -56,7 +56,7 @@ def test_same_seed_same_assignments_and_losses(tmp_path):
         trainer.run()
         trainer.close()
         rows = [json.loads(line) for line in (tmp_path / name / "metrics.jsonl").read_text().splitlines()]
-        runs.append((assignments(trainer), [r["ppo/policy_loss"] for r in rows], [r["return/" + t] for r in rows for t in ["reach", "push", "avoid"] if "return/" + t in r]))
+        runs.append((assignments(trainer), [r.get("ppo/policy_loss") for r in rows], [r["return/" + t] for r in rows for t in ["reach", "push", "avoid"] if "return/" + t in r]))
     assert runs[0] == runs[1]
 
 

@@ -64,9 +64,9 @@ def _build(net_cfg: NetworkConfig, layout: ObsLayout, kind: str) -> ActorCritic:
     if kind == "equivariant":
         from .equivariant import EquivariantCore
 
-        core = EquivariantCore(layout, net_cfg.group, list(net_cfg.channels), net_cfg.hidden)
+        core = EquivariantCore(layout, net_cfg.group, list(net_cfg.channels), net_cfg.hidden, net_cfg.space_to_depth)
     else:
         from .cnn import CNNCore
 
-        core = CNNCore(layout, list(net_cfg.channels), net_cfg.hidden, cnn_width(net_cfg))
+        core = CNNCore(layout, list(net_cfg.channels), net_cfg.hidden, cnn_width(net_cfg), net_cfg.space_to_depth)
     return ActorCritic(core, layout, net_cfg.init_log_std, kind)

@@ -105,6 +105,8 @@ class ActorCritic(nn.Module):
         """``(mean (B, A), log_std (B, A), value (B,))`` for a batch of observations."""
         img, proprio = self.prepare(obs)
         mean, value, _ = self.core(img, proprio)
+        # fp32 out of a bf16 autocast forward: the Gaussian's log-probs (PPO's ratio) need fp32
+        mean, value = mean.float(), value.float()
         return mean, self.log_std().expand_as(mean), value
 
     def features(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:

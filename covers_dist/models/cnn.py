@@ -1,8 +1,9 @@
 """The plain-CNN twin of the equivariant core (for the CNN and COVERS-CNN baselines).
 
 Same layout as :class:`covers_dist.models.equivariant.EquivariantCore`, with ordinary layers:
-n blocks of [Conv 3x3 (padding 1), ReLU, 2x2 max-pool], a convolution covering the remaining map
-down to 1 x 1, then [image features, proprio] -> Linear -> ReLU -> Linear -> ReLU (the features)
+the same optional space-to-depth stem (:class:`torch.nn.PixelUnshuffle`), n blocks of [Conv 3x3
+(padding 1), ReLU, 2x2 max-pool] (a 1x1 conv once the map is 1 x 1), a convolution covering the
+remaining map down to 1 x 1, then [image features, proprio] -> Linear -> ReLU -> Linear -> ReLU (the features)
 -> linear policy mean and value heads. Widths are the equivariant net's field counts times
 ``width`` (by default sqrt(|G|), which gives a similar parameter count: a regular-field
 convolution has about |G| times fewer free parameters than a plain one with |G| times the
@@ -17,6 +18,7 @@ import torch
 from torch import nn
 
 from ..envs.layout import ObsLayout
+from .equivariant import block_sizes
 
 __all__ = ["CNNCore"]
 
@@ -26,26 +28,25 @@ POLICY_HEAD_GAIN = 0.01
 class CNNCore(nn.Module):
     """Plain CNN feature extractor and heads; ``forward(image, proprio) -> (mean, value, features)``."""
 
-    def __init__(self, layout: ObsLayout, channels: list[int], hidden: int, width: float) -> None:
+    def __init__(
+        self, layout: ObsLayout, channels: list[int], hidden: int, width: float, space_to_depth: int = 1
+    ) -> None:
         super().__init__()
         if not channels or any(int(c) < 1 for c in channels):
             raise ValueError(f"channels must be a non-empty list of positive integers, got {channels!r}")
         if width <= 0:
             raise ValueError(f"width must be > 0, got {width!r}")
-        blocks = len(channels)
-        if layout.image_size % (2**blocks):
-            raise ValueError(
-                f"image_size={layout.image_size} must be divisible by 2**len(channels)={2**blocks} "
-                "(each block halves the image exactly)"
-            )
+        sizes, remaining = block_sizes(layout.image_size, len(channels), space_to_depth)
         self.layout = layout
         widths = [max(1, round(c * width)) for c in channels]
-        layers: list[nn.Module] = []
-        prev = 3
-        for w in widths:
-            layers += [nn.Conv2d(prev, w, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2)]
+        layers: list[nn.Module] = [nn.PixelUnshuffle(space_to_depth)] if space_to_depth > 1 else []
+        prev = 3 * space_to_depth**2
+        for w, size in zip(widths, sizes):
+            if size > 1:
+                layers += [nn.Conv2d(prev, w, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2)]
+            else:
+                layers += [nn.Conv2d(prev, w, 1), nn.ReLU()]
             prev = w
-        remaining = layout.image_size // (2**blocks)
         layers += [nn.Conv2d(prev, widths[-1], remaining), nn.ReLU(), nn.Flatten(1)]
         self.image_net = nn.Sequential(*layers)
         h = max(1, round(hidden * width))

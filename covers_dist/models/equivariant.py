@@ -3,10 +3,17 @@
 Structure, for a group G (a subgroup of D4, see :mod:`covers_dist.symmetry`) and
 ``channels = [c_1, ..., c_n]``:
 
-* image (3 trivial fields, S x S) -> n blocks of [R2Conv 3x3 (padding 1) to c_i regular fields,
-  ReLU, 2x2 max-pool] -> an R2Conv whose kernel covers the remaining (S / 2^n)^2 map, to c_n
-  regular fields at 1 x 1. 2x2 pooling of even sizes that halve evenly and the full-map kernel
-  (sampled on grid points that G permutes) keep equivariance exact.
+* image (3 trivial fields, S x S) -> optional space-to-depth stem (``space_to_depth = k``: each
+  k x k block of pixels becomes k^2 channels per colour, a map k times smaller; see below) ->
+  n blocks of [R2Conv 3x3 (padding 1) to c_i regular fields, ReLU, 2x2 max-pool] (blocks that
+  meet a 1 x 1 map use a 1x1 R2Conv and no pooling) -> an R2Conv whose kernel covers the remaining
+  map, to c_n regular fields at 1 x 1. 2x2 pooling of even sizes and the full-map kernel (sampled
+  on grid points that G permutes) keep equivariance exact.
+* the space-to-depth stem is lossless and exactly equivariant: a rotation or mirror of the table
+  moves each k x k block to its image block and permutes the k^2 pixels inside it the same way
+  for every block, so the k^2 channels of a colour form one field of that permutation
+  representation (:func:`space_to_depth_repr`; e.g. k = 2: D4 permuting the corners of a square).
+  Every block then runs on a map k times smaller, about k^2 times fewer FLOPs.
 * proprio enters at 1 x 1 as fields: each planar pair transforms by the group's standard 2-D
   representation (:func:`covers_dist.symmetry.escnn_planar_repr`), the rest as trivial fields.
 * fusion: [image fields (+) proprio fields] -> 1x1 R2Conv to ``hidden`` regular fields, ReLU,
@@ -25,14 +32,67 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from ..envs.layout import ObsLayout
 from ..symmetry import escnn_gspace, escnn_planar_repr, get_group
 from ._escnn_compat import import_escnn_nn
 
-__all__ = ["EquivariantCore"]
+__all__ = ["EquivariantCore", "block_sizes", "space_to_depth_repr"]
 
 POLICY_HEAD_GAIN = 0.01
+_S2D_REPRS: dict[tuple[str, int], Any] = {}  # one representation per (gspace, k), built once
+
+
+def block_sizes(image_size: int, blocks: int, space_to_depth: int = 1) -> tuple[list[int], int]:
+    """Map side entering each conv block, and the side left for the full-map convolution.
+
+    The map starts at ``image_size / space_to_depth``; each block halves it while it is above 1.
+    Raises ``ValueError`` when a block would pool an odd map (equivariance needs exact halving).
+    """
+    if space_to_depth < 1 or image_size % space_to_depth:
+        raise ValueError(f"image_size={image_size} must be divisible by space_to_depth={space_to_depth}")
+    size, sizes = image_size // space_to_depth, []
+    for i in range(blocks):
+        sizes.append(size)
+        if size > 1:
+            if size % 2:
+                raise ValueError(
+                    f"image_size={image_size} with space_to_depth={space_to_depth}: conv block {i + 1} of {blocks} "
+                    f"would pool a {size} x {size} map (each block halves the map exactly; "
+                    f"image_size / space_to_depth must be divisible by 2**len(channels) or reach 1 x 1)"
+                )
+            size //= 2
+    return sizes, size
+
+
+def space_to_depth_repr(gspace: Any, k: int) -> Any:
+    """The representation of ``gspace``'s group on the k^2 pixels of a k x k block (channel order of
+    :func:`torch.nn.functional.pixel_unshuffle`: row-major within the block).
+
+    Built from escnn's own action on a k x k grid, so it matches how escnn moves the map.
+    """
+    enn = import_escnn_nn()  # with the exact-SVD fix the decomposition below needs
+    from escnn.group.representation import build_from_discrete_group_representation
+
+    FieldType = enn.FieldType
+    group = gspace.fibergroup
+    name = f"space_to_depth_{k}"
+    key = (repr(gspace), k)
+    if key in _S2D_REPRS:
+        return _S2D_REPRS[key]
+    grid = torch.arange(k * k, dtype=torch.float64).view(1, 1, k, k)
+    trivial = FieldType(gspace, [gspace.trivial_repr])
+    matrices = {}
+    for h in group.elements:
+        moved = trivial.transform(grid, h).round().long().flatten().tolist()
+        if sorted(moved) != list(range(k * k)):
+            raise RuntimeError(f"escnn's action of {h} on a {k} x {k} grid is not a permutation")
+        perm = np.zeros((k * k, k * k))
+        perm[np.arange(k * k), moved] = 1.0  # (g . x)[p] = x[moved[p]]
+        matrices[h] = perm
+    _S2D_REPRS[key] = build_from_discrete_group_representation(matrices, name, group, ["pointwise"])
+    return _S2D_REPRS[key]
 
 
 def _full_map_conv(enn: Any, in_type: Any, out_type: Any, size: int) -> Any:
@@ -55,32 +115,34 @@ def _full_map_conv(enn: Any, in_type: Any, out_type: Any, size: int) -> Any:
 class EquivariantCore(nn.Module):
     """escnn feature extractor and heads; ``forward(image, proprio) -> (mean, value, features)``."""
 
-    def __init__(self, layout: ObsLayout, group: str, channels: list[int], hidden: int) -> None:
+    def __init__(
+        self, layout: ObsLayout, group: str, channels: list[int], hidden: int, space_to_depth: int = 1
+    ) -> None:
         super().__init__()
         enn = import_escnn_nn()
-        blocks = len(channels)
         if not channels or any(int(c) < 1 for c in channels):
             raise ValueError(f"channels must be a non-empty list of positive integers, got {channels!r}")
         if hidden < 1:
             raise ValueError(f"hidden must be >= 1, got {hidden!r}")
-        if layout.image_size % (2**blocks):
-            raise ValueError(
-                f"image_size={layout.image_size} must be divisible by 2**len(channels)={2**blocks} "
-                "(each block halves the image exactly)"
-            )
+        sizes, remaining = block_sizes(layout.image_size, len(channels), space_to_depth)
         self.layout = layout
+        self.space_to_depth = int(space_to_depth)
         self.group = get_group(group)
         self.gspace = gs = escnn_gspace(self.group)
         regular, trivial, planar = gs.regular_repr, gs.trivial_repr, escnn_planar_repr(gs)
 
-        self.in_type = enn.FieldType(gs, 3 * [trivial])
+        k = self.space_to_depth
+        pixel = space_to_depth_repr(gs, k) if k > 1 else trivial
+        self.in_type = enn.FieldType(gs, 3 * [pixel])
         layers: list[Any] = []
         prev = self.in_type
-        for c in channels:
+        for c, size in zip(channels, sizes):
             out = enn.FieldType(gs, int(c) * [regular])
-            layers += [enn.R2Conv(prev, out, kernel_size=3, padding=1), enn.ReLU(out), enn.PointwiseMaxPool2D(out, 2)]
+            if size > 1:
+                layers += [enn.R2Conv(prev, out, kernel_size=3, padding=1), enn.ReLU(out), enn.PointwiseMaxPool2D(out, 2)]
+            else:
+                layers += [enn.R2Conv(prev, out, kernel_size=1), enn.ReLU(out)]
             prev = out
-        remaining = layout.image_size // (2**blocks)
         img_out = enn.FieldType(gs, int(channels[-1]) * [regular])
         layers += [_full_map_conv(enn, prev, img_out, remaining), enn.ReLU(img_out)]
         self.image_net = enn.SequentialModule(*layers)
@@ -107,6 +169,8 @@ class EquivariantCore(nn.Module):
     def forward(self, image: torch.Tensor, proprio: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         from escnn.nn import GeometricTensor, tensor_directsum
 
+        if self.space_to_depth > 1:
+            image = F.pixel_unshuffle(image, self.space_to_depth).contiguous(memory_format=torch.channels_last)
         x = self.image_net(GeometricTensor(image, self.in_type))
         p = GeometricTensor(proprio[:, :, None, None], self.proprio_type)
         h = self.fusion(tensor_directsum([x, p]))
@@ -119,13 +183,17 @@ class EquivariantCore(nn.Module):
         """A plain-torch copy for no-grad inference (filters expanded once; the module's mode is untouched)."""
         with torch.no_grad():
             fast = _ExportedCore(
-                _export(self.image_net),
+                _stem(self.space_to_depth, _export(self.image_net)),
                 _export(self.fusion),
                 _export(self.policy_head),
                 _GroupMaxPool(self.pool.in_type.size // self.feature_dim),
                 copy.deepcopy(self.value_head),
             )
         return fast.eval().requires_grad_(False)
+
+
+def _stem(k: int, image_net: nn.Module) -> nn.Module:
+    return nn.Sequential(nn.PixelUnshuffle(k), image_net) if k > 1 else image_net
 
 
 def _export(module: Any) -> nn.Module:

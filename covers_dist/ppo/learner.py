@@ -4,7 +4,9 @@
 episode (:func:`covers_dist.ppo.gae.compute_gae`, on rewards times ``reward_scale``), then runs
 ``epochs`` passes of shuffled minibatches of the clipped objective
 (:func:`covers_dist.ppo.loss.ppo_loss`) with the behaviour log-probs and values stored in the data,
-gradient-norm clipping and Adam. Minibatches split each epoch's shuffled samples into
+gradient-norm clipping and Adam. With ``precision`` bf16 (``auto``: where the learner's device
+computes bf16 natively) the forward pass runs under ``torch.autocast``; weights, Adam's state, the
+loss and the gradients' accumulation stay fp32. Minibatches split each epoch's shuffled samples into
 ``round(N / minibatch_size)`` near-equal parts, so every sample is used every epoch. A minibatch whose loss or
 gradient norm is not finite is skipped (no optimizer step, the weights stay as they were) and
 counted in ``skipped_steps``. With ``target_kl`` set, the update stops at the first minibatch
@@ -29,15 +31,40 @@ from ..config import PPOConfig
 from .gae import compute_gae
 from .loss import normalize_advantages, ppo_loss
 
-__all__ = ["PPOLearner", "episodes_to_batch", "EPISODE_KEYS", "STAT_KEYS"]
+__all__ = ["PPOLearner", "episodes_to_batch", "resolve_precision", "native_bf16_cpu", "EPISODE_KEYS", "STAT_KEYS"]
 
 EPISODE_KEYS = ("image", "proprio", "action", "logprob", "value", "reward", "success", "terminated", "truncated")
 #: Keys of the dict returned by :meth:`PPOLearner.update`.
 STAT_KEYS = (
     "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "grad_norm",
     "skipped_steps", "optimizer_steps", "epochs_completed", "early_stopped", "lr", "num_samples",
-    "num_episodes", "episode_return_mean", "success_rate", "update_time_s", "samples_per_s", "update_count",
+    "num_episodes", "episode_return_mean", "success_rate", "update_time_s", "samples_per_s", "update_count", "bf16",
 )  # fmt: skip
+
+
+def native_bf16_cpu(cpuinfo: str = "/proc/cpuinfo") -> bool:
+    """Whether this CPU computes bf16 natively (AVX-512 BF16 or AMX); False when unknown."""
+    try:
+        with open(cpuinfo) as f:
+            for line in f:
+                if line.startswith("flags"):
+                    flags = set(line.split(":", 1)[1].split())
+                    return bool(flags & {"avx512_bf16", "amx_bf16"})
+    except OSError:
+        pass
+    return False
+
+
+def resolve_precision(setting: str, device: torch.device | str) -> str:
+    """``"fp32"`` or ``"bf16"`` for ``ppo.precision`` on ``device`` (``auto``: bf16 where it is native)."""
+    if setting not in ("auto", "fp32", "bf16"):
+        raise ValueError(f"precision must be 'auto', 'fp32' or 'bf16', got {setting!r}")
+    if setting != "auto":
+        return setting
+    device = torch.device(device)
+    if device.type == "cuda":
+        return "bf16" if torch.cuda.is_bf16_supported() else "fp32"
+    return "bf16" if device.type == "cpu" and native_bf16_cpu() else "fp32"
 
 
 def _check_episode(i: int, ep: Mapping[str, Any]) -> int:
@@ -104,6 +131,9 @@ class PPOLearner:
         self.update_count = 0
         self.skipped_total = 0
         self._rng = torch.Generator().manual_seed(self.seed)
+        device = next(model.parameters()).device
+        self.precision = resolve_precision(ppo_cfg.precision, device)
+        self._autocast_device = device.type
 
     def learning_rate(self) -> float:
         """The learning rate the next update will use."""
@@ -133,7 +163,9 @@ class PPOLearner:
         for _ in range(cfg.epochs):
             for idx in torch.tensor_split(torch.randperm(n, generator=self._rng).to(device), num_mb):
                 obs = {"image": batch["image"][idx], "proprio": batch["proprio"][idx]}
-                logp, entropy, values = self.model.evaluate_actions(obs, batch["action"][idx])
+                with torch.autocast(self._autocast_device, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+                    logp, entropy, values = self.model.evaluate_actions(obs, batch["action"][idx])
+                logp, entropy, values = logp.float(), entropy.float(), values.float()
                 adv = batch["adv"][idx]
                 terms = ppo_loss(
                     logp, batch["logprob"][idx], normalize_advantages(adv) if cfg.norm_adv else adv,
@@ -182,6 +214,7 @@ class PPOLearner:
             update_time_s=elapsed,
             samples_per_s=processed / elapsed if elapsed > 0 else float("nan"),
             update_count=self.update_count,
+            bf16=self.precision == "bf16",
         )
         return stats
 

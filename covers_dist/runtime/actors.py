@@ -63,4 +63,4 @@ def clustering_actor(cfg: Config, run_dir: str) -> Any:
 
 def learner_actor(cfg: Config) -> Any:
     gpus = cfg.runtime.num_gpus if cfg.runtime.num_gpus > 0 else 0
-    return ray.remote(num_cpus=0, num_gpus=gpus, max_restarts=MAX_RESTARTS, max_task_retries=-1)(PolicyLearner)
+    return ray.remote(num_cpus=cfg.runtime.learner_num_cpus, num_gpus=gpus, max_restarts=MAX_RESTARTS, max_task_retries=-1)(PolicyLearner)

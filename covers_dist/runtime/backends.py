@@ -68,6 +68,21 @@ class SerialBackend:
     def publish(self, weights: Any) -> Any:
         return weights
 
+    # In this process every submitted call runs at once; its result waits in a (done) handle.
+    def submit_sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any) -> Any:
+        return self.sample(plan, policy_id, version, handle)
+
+    def collect_sample(self, pending: Any) -> tuple[list, list, list]:
+        return pending
+
+    def submit_update(self, policy_id: int, episodes: Any) -> Any:
+        return self.learners[policy_id].update(episodes)
+
+    def collect_update(self, pending: Any) -> tuple[dict[str, Any], Any]:
+        """(statistics, handle of the new weights to publish) of a submitted update."""
+        stats, _, weights = pending
+        return stats, weights
+
     def sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any):
         firsts, summaries, episodes = [], [], []
         for worker, specs in zip(self.workers, plan):
@@ -139,13 +154,27 @@ class RayBackend:
     def publish(self, weights: Any) -> Any:
         return [self.ray.put(weights)]  # wrapped in a list: workers resolve it only when needed
 
-    def sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any):
+    def submit_sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any) -> Any:
         k = self.cfg.clustering.initial_frames
-        calls = [
+        return [
             w.sample_split.options(num_returns=3).remote(specs, policy_id, version, handle, k)
             for w, specs in zip(self.workers, plan)
             if specs
         ]
+
+    def submit_update(self, policy_id: int, episodes: Any) -> Any:
+        return self.learners[policy_id].update.options(num_returns=3).remote(episodes)
+
+    def collect_update(self, pending: Any) -> tuple[dict[str, Any], Any]:
+        """Waits for the statistics only: the new weights stay in the object store, and their
+        reference is the handle workers and the clustering actor resolve (the driver never holds them)."""
+        stats_ref, _, weights_ref = pending
+        return self.ray.get(stats_ref), [weights_ref]
+
+    def sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any):
+        return self.collect_sample(self.submit_sample(plan, policy_id, version, handle))
+
+    def collect_sample(self, calls: Any) -> tuple[list, list, list]:
         firsts, summaries, episode_refs = [], [], []
         small = self.ray.get([c[0] for c in calls] + [c[1] for c in calls])
         for f in small[: len(calls)]:

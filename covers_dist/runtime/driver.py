@@ -22,6 +22,7 @@ import shutil
 import signal
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -34,6 +35,7 @@ from ..envs.stream import TaskStream
 from .checkpoint import latest_valid_checkpoint, write_checkpoint
 from .evaluation import PeriodicEvaluation, evaluation_pass
 from .metrics import M, MetricsWriter, Progress
+from .ray_setup import resolve_weights
 from .rollout import EpisodeSpec
 
 __all__ = ["Trainer", "train"]
@@ -68,6 +70,7 @@ class Trainer:
         self._last_rows: list[dict[str, Any]] = []
         self._t_start, self._steps_at_start = time.monotonic(), 0
         self._resume_from: Path | None = None
+        self._pending_update: tuple[int, Any] | None = None  # (policy id, submitted or _Completed update)
         if resume:
             self._resume_from = latest_valid_checkpoint(self.run_dir, log=self.log)
             if self._resume_from is None:
@@ -99,11 +102,9 @@ class Trainer:
         n = self.cfg.runtime.num_workers
         return [specs[w::n] for w in range(n)]
 
-    def _sample(self, plan: list[list[EpisodeSpec]], policy_id: int) -> tuple[list, list, Any]:
-        """Roll the plan out with ``policy_id``; first frames and summaries in episode order."""
-        firsts, summaries, episodes = self.backend.sample(
-            plan, policy_id, self.versions[policy_id], self.handles[policy_id]
-        )
+    def _collect(self, pending: Any) -> tuple[list, list, Any]:
+        """A submitted sample's first frames and summaries, in episode order, and its episodes."""
+        firsts, summaries, episodes = self.backend.collect_sample(pending)
         order = sorted(range(len(summaries)), key=lambda i: summaries[i]["episode_index"])
         return [firsts[i] for i in order], [summaries[i] for i in order], episodes
 
@@ -119,44 +120,84 @@ class Trainer:
         return record
 
     def _publish(self, policy_id: int, weights: Any) -> None:
-        """New weights to the object store under a new version; the clustering service (features,
+        """New weights (a state dict) to the object store under a new version."""
+        self._publish_handle(policy_id, self.backend.publish(weights))
+
+    def _publish_handle(self, policy_id: int, handle: Any) -> None:
+        """Weights already in the object store get a new version; the clustering service (features,
         the HTTP service's act) loads them now, workers when they next sample with them."""
         self.weight_version += 1
         self.versions[policy_id] = self.weight_version
-        self.handles[policy_id] = self.backend.publish(weights)
-        self.backend.call_clustering("sync_weights", {policy_id: (self.weight_version, self.handles[policy_id])})
+        self.handles[policy_id] = handle
+        self.backend.call_clustering("sync_weights", {policy_id: (self.weight_version, handle)})
 
     def _new_policy(self, policy_id: int) -> None:
         self.backend.ensure_learner(policy_id)
         _, weights = self.backend.call_learner(policy_id, "weights")
         self._publish(policy_id, weights)
 
+    def _complete_pending(self) -> tuple[int, dict[str, Any], Any] | None:
+        """Wait for the submitted update (if any) without publishing it: (policy, statistics, weights handle)."""
+        if self._pending_update is None:
+            return None
+        policy_id, pending = self._pending_update
+        if not isinstance(pending, _Completed):
+            pending = _Completed(*self.backend.collect_update(pending))
+            self._pending_update = (policy_id, pending)
+        return policy_id, pending.stats, pending.handle
+
+    def _finish_update(self) -> dict[str, Any]:
+        """Wait for the submitted update (if any) and publish its weights; its statistics."""
+        done = self._complete_pending()
+        if done is None:
+            return {}
+        self._pending_update = None
+        policy_id, stats, handle = done
+        self._publish_handle(policy_id, handle)
+        return stats
+
     def step(self) -> dict[str, Any]:
-        """One iteration: sample -> assign -> update -> publish (``clustering.assign_at: reset``:
-        assign -> sample -> update -> publish); returns the metrics row."""
+        """One iteration; returns the metrics row.
+
+        Sequential (``runtime.pipeline: false``): sample -> assign -> update -> publish
+        (``clustering.assign_at: reset``: assign -> sample -> update -> publish). Pipelined: this
+        iteration's sampling runs while the previous iteration's update finishes; those weights are
+        published before this iteration's assignment, and this iteration's update is submitted and
+        left running (the row reports the previous update's statistics). Sampling therefore uses
+        the sampling policy's weights from one update earlier (docs/architecture.md, "Pipelining").
+        """
         plan = self._plan()
-        if self.cfg.clustering.assign_at == "reset":
+        reset = self.cfg.clustering.assign_at == "reset"
+        record: dict[str, Any] = {}
+        if reset:
             with self._phase("assign"):  # from the first frames, before anything acts
                 specs = sorted((s for part in plan for s in part), key=lambda s: s.episode_index)
-                obs = self.backend.first_frames(plan)
-                record = self._assign(obs, specs)
-            chosen = int(record["policy_id"])
-            with self._phase("sample"):
-                _, summaries, episodes = self._sample(plan, chosen)
+                record = self._assign(self.backend.first_frames(plan), specs)
+            sampler = int(record["policy_id"])
         else:
-            with self._phase("sample"):
-                firsts, summaries, episodes = self._sample(plan, self.current_policy)
+            sampler = self.current_policy
+        t0 = time.perf_counter()
+        pending = self.backend.submit_sample(plan, sampler, self.versions[sampler], self.handles[sampler])
+        firsts, summaries, episodes = self._collect(pending)
+        self.phase_time["sample"] = time.perf_counter() - t0
+        stats: dict[str, Any] = {}
+        if self._pending_update is not None:  # pipelined: the previous update ran alongside the sampling
+            stats = self._finish_update()
+            self.phase_time["update"] = time.perf_counter() - t0
+        if not reset:
             obs = {
                 "image": np.concatenate([f["image"] for f in firsts]),
                 "proprio": np.concatenate([f["proprio"] for f in firsts]),
             }
             with self._phase("assign"):
                 record = self._assign(obs, summaries)
-            chosen = int(record["policy_id"])
-        with self._phase("update"):
-            stats, _, weights = self.backend.call_learner(chosen, "update", episodes)
+        chosen = int(record["policy_id"])
+        with self._phase("submit"):  # serial backend: the update itself runs here
+            self._pending_update = (chosen, self.backend.submit_update(chosen, episodes))
+        if not self.cfg.runtime.pipeline:
+            with self._phase("update"):
+                stats = self._finish_update()
         with self._phase("publish"):
-            self._publish(chosen, weights)
             for s in summaries:
                 s["assigned_policy"] = chosen
                 self.acted_other += int(s["policy_id"] != chosen)
@@ -201,10 +242,16 @@ class Trainer:
             row[f"{M.RETURN}/{task}"] = self.returns[task]
         for name, secs in self.phase_time.items():
             row[f"{M.TIME}/{name}"] = secs
-        for key, value in stats.items():
-            if isinstance(value, (int, float)) and not isinstance(value, bool):
-                row[f"{M.LOSS}/{key}"] = value
+        row.update(self._row_stats(stats))
         return row
+
+    @staticmethod
+    def _row_stats(stats: dict[str, Any]) -> dict[str, Any]:
+        return {
+            f"{M.LOSS}/{key}": value
+            for key, value in stats.items()
+            if isinstance(value, (int, float)) and not isinstance(value, bool)
+        }
 
     # ---- checkpoints ---------------------------------------------------------------------------
     def _driver_state(self) -> dict[str, Any]:
@@ -223,13 +270,25 @@ class Trainer:
         }
 
     def checkpoint(self) -> Path:
+        """Write a checkpoint. An update still in flight (pipelined loop) is waited for but not
+        published: the learner's state holds it, and the weights workers sample with until it is
+        published are saved beside it, so a resumed run goes on exactly as an uninterrupted one."""
+        pending = self._complete_pending()
+
         def write(tmp: Path) -> None:
-            (tmp / "driver.json").write_text(json.dumps(self._driver_state()))
+            state = self._driver_state()
+            if pending is not None:
+                policy_id, stats, _ = pending
+                state["pending_update"] = {"policy_id": policy_id, "stats": self._row_stats(stats)}
+            (tmp / "driver.json").write_text(json.dumps(state))
             (tmp / "config.yaml").write_text(yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False))
             self.backend.call_clustering("save", str(tmp / "bank"))
             (tmp / "learners").mkdir()
             for pid in sorted(self.versions):
                 torch.save(self.backend.call_learner(pid, "state_dict"), tmp / "learners" / f"policy-{pid}.pt")
+            if pending is not None:
+                sampling = resolve_weights(self.handles[pending[0]])
+                torch.save(sampling, tmp / "learners" / f"policy-{pending[0]}.sampling.pt")
 
         return write_checkpoint(self.run_dir, self.iteration, write)
 
@@ -244,12 +303,21 @@ class Trainer:
         self.acted_other = int(state.get("acted_other", 0))
         self.stream.load_state_dict(state["stream"])
         self.backend.call_clustering("load", str(path / "bank"))
+        pending = state.get("pending_update")
         for pid in state["policies"]:
             self.backend.ensure_learner(pid)
             learner_state = torch.load(path / "learners" / f"policy-{pid}.pt", weights_only=False)
             self.backend.call_learner(pid, "load_state_dict", learner_state)
             _, weights = self.backend.call_learner(pid, "weights")
-            self._publish(pid, weights)
+            if pending is not None and pending["policy_id"] == pid:
+                # the update in flight when the checkpoint was written: workers keep sampling with
+                # the weights before it until the next iteration publishes it, as they would have
+                sampling = torch.load(path / "learners" / f"policy-{pid}.sampling.pt", weights_only=False)
+                self._publish(pid, sampling)
+                stats = {k.split("/", 1)[1]: v for k, v in pending["stats"].items()}
+                self._pending_update = (pid, _Completed(stats, self.backend.publish(weights)))
+            else:
+                self._publish(pid, weights)
         self.evaluation.rewind(self.iteration)
         self.log(f"resumed from {path} (iteration {self.iteration}, {self.env_steps} env steps)")
 
@@ -338,6 +406,14 @@ class Trainer:
 
     def close(self) -> None:
         self.backend.shutdown()
+
+
+@dataclass(frozen=True)
+class _Completed:
+    """An update that has finished on its learner but whose weights are not published yet."""
+
+    stats: dict[str, Any]
+    handle: Any
 
 
 def _field(item: Any, name: str) -> Any:
