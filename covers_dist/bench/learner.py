@@ -47,6 +47,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--inference-seconds", type=float, default=0.5, help="time per inference figure (default: 0.5)")
     p.add_argument("--env-steps", type=int, default=300, help="env steps timed per suite (default: 300)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default: 1, as in a worker)")
+    p.add_argument(
+        "--space-to-depth", default="1,2",
+        help="comma-separated stems to measure in the same run (network.space_to_depth; default: 1,2)",
+    )
+    p.add_argument(
+        "--precision", default="auto", choices=["auto", "fp32", "bf16"],
+        help="update arithmetic (ppo.precision; default: auto = bf16 only where it is native)",
+    )  # fmt: skip
     p.add_argument("--equivariance", action="store_true", help="also print equivariance errors per output")
     p.add_argument("--json", action="store_true", help="print one JSON object per row")
     p.set_defaults(func=run)
@@ -139,7 +147,7 @@ def bench_suite(suite: str, net_cfg: NetworkConfig, args: argparse.Namespace) ->
             dataclasses.replace(net_cfg, cnn_width=float(order)), layout, "cnn", seed=0
         ),
     }
-    ppo_cfg = PPOConfig(epochs=1, minibatch_size=args.minibatch)
+    ppo_cfg = PPOConfig(epochs=1, minibatch_size=args.minibatch, precision=args.precision)
     worker_batch = RuntimeConfig().envs_per_worker
     batches = sorted({1, worker_batch, 8, 16})
     rng = np.random.default_rng(0)
@@ -163,6 +171,7 @@ def bench_suite(suite: str, net_cfg: NetworkConfig, args: argparse.Namespace) ->
         med = {k: statistics.median(v) for k, v in samples[name].items()}
         rows.append(
             {"kind": "net", "suite": suite, "net": name, "image_size": size, "group": net_cfg.group,
+             "space_to_depth": net_cfg.space_to_depth, "precision": learners[name].precision,
              "params": model.num_parameters(), "feature_dim": model.feature_dim,
              "update_samples_per_s": round(med["update"], 1),
              **{f"infer_obs_per_s_b{b}": round(med[f"b{b}"], 1) for b in batches}}
@@ -171,7 +180,7 @@ def bench_suite(suite: str, net_cfg: NetworkConfig, args: argparse.Namespace) ->
     ratio = eq["update_samples_per_s"] / cnn["update_samples_per_s"]
     infer_w = eq[f"infer_obs_per_s_b{worker_batch}"]
     rows.append(
-        {"kind": "summary", "suite": suite, "image_size": size,
+        {"kind": "summary", "suite": suite, "image_size": size, "space_to_depth": net_cfg.space_to_depth,
          "update_ratio_equivariant_to_cnn": round(ratio, 3),
          "update_ratio_equivariant_to_cnn_matched_channels": round(
              eq["update_samples_per_s"] / rows[2]["update_samples_per_s"], 3),
@@ -185,6 +194,18 @@ def bench_suite(suite: str, net_cfg: NetworkConfig, args: argparse.Namespace) ->
          "repeats": args.repeats, "threads": args.threads}
     )  # fmt: skip
     return rows
+
+
+def _stem_comparison(suite: str, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Update throughput of each stem against the first one measured (the same run)."""
+    eq = [r for r in rows if r["kind"] == "net" and r["net"] in ("equivariant", "cnn")]
+    base = {r["net"]: r for r in eq if r["space_to_depth"] == eq[0]["space_to_depth"]}
+    return [
+        {"kind": "stem", "suite": suite, "net": r["net"], "space_to_depth": r["space_to_depth"],
+         "baseline_space_to_depth": base[r["net"]]["space_to_depth"],
+         "update_speedup": round(r["update_samples_per_s"] / base[r["net"]]["update_samples_per_s"], 3)}
+        for r in eq if r["space_to_depth"] != base[r["net"]]["space_to_depth"]
+    ]  # fmt: skip
 
 
 def _env_observations(suite: str, task: str, size: int, n: int = 4) -> dict[str, np.ndarray]:
@@ -227,7 +248,10 @@ def equivariance_rows(suite: str, net_cfg: NetworkConfig) -> list[dict[str, Any]
 
 def _print_table(rows: list[dict[str, Any]]) -> None:
     for row in rows:
-        if row["kind"] == "equivariance":
+        if row["kind"] == "stem":
+            print(f"{row['suite']:9s} {row['net']:11s} space_to_depth {row['space_to_depth']} update "
+                  f"{row['update_speedup']:.2f}x of space_to_depth {row['baseline_space_to_depth']}")
+        elif row["kind"] == "equivariance":
             errs = "  ".join(
                 f"{k.removeprefix('max_rel_error_')} {v:.1e}" for k, v in row.items() if k.startswith("max_")
             )
@@ -235,7 +259,7 @@ def _print_table(rows: list[dict[str, Any]]) -> None:
         elif row["kind"] == "net":
             infer = "  ".join(f"{k.split('_')[-1]} {v:8,.0f}" for k, v in row.items() if k.startswith("infer_"))
             print(
-                f"{row['suite']:9s} {row['image_size']:3d}px {row['net']:21s} params {row['params']:7,d}  "
+                f"{row['suite']:9s} {row['image_size']:3d}px s2d {row['space_to_depth']} {row['net']:21s} params {row['params']:7,d}  "
                 f"update {row['update_samples_per_s']:8,.0f} samples/s  infer obs/s: {infer}"
             )
         else:
@@ -264,13 +288,23 @@ def run(args: argparse.Namespace) -> int:
         net_cfg = dataclasses.replace(net_cfg, channels=[int(c) for c in args.channels.split(",")])
     if args.hidden:
         net_cfg = dataclasses.replace(net_cfg, hidden=args.hidden)
+    try:
+        stems = [int(k) for k in args.space_to_depth.split(",") if k.strip()]
+    except ValueError:
+        stems = []
+    if not stems or any(k not in (1, 2, 4) for k in stems):
+        raise SystemExit(f"covers-dist bench learner: --space-to-depth takes values among 1, 2, 4, got {args.space_to_depth!r}")
     threads = torch.get_num_threads()
     torch.set_num_threads(args.threads)
     try:
         for suite in suites:
-            rows = bench_suite(suite, net_cfg, args)
-            if args.equivariance:
-                rows += equivariance_rows(suite, net_cfg)
+            rows = []
+            for k in stems:
+                stem_cfg = dataclasses.replace(net_cfg, space_to_depth=k)
+                rows += bench_suite(suite, stem_cfg, args)
+                if args.equivariance:
+                    rows += equivariance_rows(suite, stem_cfg)
+            rows += _stem_comparison(suite, rows)
             if args.json:
                 for row in rows:
                     print(json.dumps(row), flush=True)

@@ -51,14 +51,21 @@ def _scaled(image: np.ndarray) -> np.ndarray:
     return image.astype(np.float32) * (1.0 / 255.0)
 
 
-def build_rllib_ppo(cfg: Config) -> Any:
-    """An RLlib PPO algorithm (new API stack) configured like ``cfg`` (Ray must be initialised)."""
+def build_rllib_ppo(cfg: Config, network: str = "default") -> Any:
+    """An RLlib PPO algorithm (new API stack) configured like ``cfg`` (Ray must be initialised).
+
+    ``network="default"``: RLlib's own CNN on the image alone; ``"covers"``: covers-dist's network
+    (``cfg.network``: the equivariant net or its CNN twin) as an RLModule on image + proprio
+    (:mod:`covers_dist.integrations.rllib`), so the two frameworks are compared on equal compute.
+    """
     from ray.rllib.algorithms.ppo import PPOConfig
     from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
     from ray.tune.registry import register_env
 
     from ..config import config_to_dict
 
+    if network not in ("default", "covers"):
+        raise ValueError(f"network must be 'default' or 'covers', got {network!r}")
     register_env("covers_image_task", lambda env_config: ImageOnlyTask(env_config))
     batch = cfg.clustering.update_every * cfg.env.max_episode_steps
     per_runner = max(1, batch // (cfg.runtime.num_workers * cfg.runtime.envs_per_worker))
@@ -69,9 +76,17 @@ def build_rllib_ppo(cfg: Config) -> Any:
             break
         filters.append([int(ch) * 4, 4, 2])  # ~ the equivariant net's width (regular fields x |D4| / 2)
         size //= 2
+    if network == "covers":
+        from ..integrations.rllib import covers_env_config, covers_rl_module_spec, register_covers_env
+
+        env_name, env_config = register_covers_env(), covers_env_config(cfg)
+        module = {"rl_module_spec": covers_rl_module_spec(cfg)}
+    else:
+        env_name, env_config = "covers_image_task", {"config": config_to_dict(cfg), "task": cfg.env.tasks[0]}
+        module = {"model_config": DefaultModelConfig(conv_filters=filters, head_fcnet_hiddens=[cfg.network.hidden])}
     algo_cfg = (
         PPOConfig()
-        .environment("covers_image_task", env_config={"config": config_to_dict(cfg), "task": cfg.env.tasks[0]})
+        .environment(env_name, env_config=env_config)
         .framework("torch")
         .env_runners(
             num_env_runners=cfg.runtime.num_workers,
@@ -89,7 +104,7 @@ def build_rllib_ppo(cfg: Config) -> Any:
             lambda_=cfg.ppo.gae_lambda,
             clip_param=cfg.ppo.clip_coef,
         )
-        .rl_module(model_config=DefaultModelConfig(conv_filters=filters, head_fcnet_hiddens=[cfg.network.hidden]))
+        .rl_module(**module)
         .debugging(seed=cfg.seed)
         .reporting(min_sample_timesteps_per_iteration=0)
     )

@@ -1,16 +1,22 @@
 """``covers-dist bench train``: end-to-end env steps/s of the COVERS loop vs RLlib's PPO.
 
-In one run, on one machine: the whole loop (sample -> assign -> update -> publish) on the given
-config with 1 and with 2 rollout workers, then RLlib's PPO (new API stack) on the same base task,
-same image size, with a CNN of comparable size, sampling with the same number of env runners and
-envs per runner. Also reports the sampling phase's speed-up from 1 to 2 workers and the peak
-resident memory of all processes of the run (driver + every Ray process), sampled every 0.2 s.
+In one run, on one machine, each setting on a fresh local Ray instance:
 
-A third setting runs the loop with the CNN twin (``covers-cnn``), whose compute per sample is
-close to RLlib's CNN, so that the runtime is compared with the network cost held comparable.
+* ``covers_1w`` / ``covers_2w``: the whole loop on the given config with 1 and 2 rollout workers
+  (pipelined, the default); ``covers_2w_sequential``: the same with ``runtime.pipeline=false``;
+  ``covers_cnn_2w``: the loop with the CNN twin (COVERS-CNN);
+* ``rllib_ppo``: RLlib's PPO (new API stack) on the same base task and image size with RLlib's
+  default CNN on the image alone; ``rllib_same_net_cnn`` / ``rllib_same_net_equivariant``: RLlib's
+  PPO training covers-dist's own network (CNN twin / equivariant) through the RLModule adapter
+  (:mod:`covers_dist.integrations.rllib`), on image + proprio: equal compute per sample.
 
-Targets (reported, not asserted): end-to-end steps/s >= 2x RLlib's; sampling with 2 workers
->= 1.7x with 1; peak memory <= 4 GiB.
+RLlib samples with the same number of env runners and envs per runner, one train batch is one
+covers-dist iteration, with the same epochs, minibatch and learning rate. Also reported: the
+sampling phase's speed-up from 1 to 2 workers, the peak resident memory of all processes of a
+run (driver + every Ray process, sampled every 0.2 s), and the ratios the targets name.
+
+Targets (reported, not asserted): equivariant loop >= 1.0x RLlib's default-CNN PPO; CNN-twin
+loop >= 2x RLlib on the same network; 2 workers > 1 worker end to end; peak memory <= 4 GiB.
 """
 
 from __future__ import annotations
@@ -79,12 +85,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iterations", type=int, default=6, help="measured iterations per setting (default: 6)")
     p.add_argument("--warmup", type=int, default=1, help="unmeasured iterations first (default: 1)")
     p.add_argument("--skip-rllib", action="store_true", help="measure covers-dist only")
+    p.add_argument(
+        "--settings", default=None,
+        help="comma-separated subset of: " + ", ".join([*COVERS_SETTINGS, *RLLIB_SETTINGS]) + " (default: all)",
+    )  # fmt: skip
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
 
-def _covers(cfg_path: str, overrides: list[str], workers: int, iters: int, warmup: int) -> dict[str, float]:
-    """The COVERS loop on a local Ray instance; memory covers every process of that instance."""
+def _covers(
+    cfg_path: str, overrides: list[str], workers: int, iters: int, warmup: int, address: str | None = None
+) -> dict[str, float]:
+    """The COVERS loop on a local Ray instance (or the cluster at ``address``); memory covers every
+    process of that instance; ``phase_<name>_s`` are mean seconds per iteration of each phase."""
     import ray
 
     from ..runtime.driver import Trainer
@@ -92,7 +105,7 @@ def _covers(cfg_path: str, overrides: list[str], workers: int, iters: int, warmu
 
     run_dir = tempfile.mkdtemp(prefix="covers-bench-")
     cfg = load_config(cfg_path, [*overrides, f"runtime.num_workers={workers}", f"runtime.run_dir={run_dir}"])
-    init_ray(cfg.runtime.num_cpus)
+    init_ray(cfg.runtime.num_cpus, address)
     session_dir = ray._private.worker.global_worker.node.get_session_dir_path()
     trainer = Trainer(cfg, log=lambda *_: None)
     try:
@@ -100,11 +113,16 @@ def _covers(cfg_path: str, overrides: list[str], workers: int, iters: int, warmu
             trainer._new_policy(0)
             for _ in range(warmup):
                 trainer.step()
-            steps0, t0, sample_s = trainer.env_steps, time.perf_counter(), 0.0
+            trainer.drain()  # the window holds exactly its own iterations' sampling and updates
+            steps0, t0, phases = trainer.env_steps, time.perf_counter(), {}
             for _ in range(iters):
+                trainer.phase_time.clear()
                 trainer.step()
-                sample_s += trainer.phase_time["sample"]
+                for name, secs in trainer.phase_time.items():
+                    phases[name] = phases.get(name, 0.0) + secs
+            trainer.drain()
             elapsed = time.perf_counter() - t0
+            sample_s = phases["sample"]
             steps = trainer.env_steps - steps0
     finally:
         trainer.close()
@@ -115,17 +133,18 @@ def _covers(cfg_path: str, overrides: list[str], workers: int, iters: int, warmu
         "peak_rss_gib": mem.peak / GIB,
         "processes": mem.processes,
         "env_steps": steps,
-        "update_s_per_iter": trainer.phase_time.get("update", 0.0),
+        "update_s_per_iter": phases.get("update", 0.0) / iters,
+        **{f"phase_{name}_s": secs / iters for name, secs in phases.items()},
     }
 
 
-def _rllib(cfg_path: str, overrides: list[str], iters: int, warmup: int) -> dict[str, float]:
+def _rllib(cfg_path: str, overrides: list[str], iters: int, warmup: int, network: str = "default") -> dict[str, float]:
     from ..runtime.ray_setup import init_ray, shutdown_ray
     from .rllib_peer import build_rllib_ppo
 
     cfg = load_config(cfg_path, overrides)
     init_ray(cfg.runtime.num_cpus)
-    algo = build_rllib_ppo(cfg)
+    algo = build_rllib_ppo(cfg, network)
     try:
         for _ in range(warmup):
             algo.train()
@@ -141,27 +160,72 @@ def _rllib(cfg_path: str, overrides: list[str], iters: int, warmup: int) -> dict
     return {"env_steps_per_s": steps / elapsed, "env_steps": steps}
 
 
+COVERS_SETTINGS = {  # name: (rollout workers, overrides)
+    "covers_1w": (1, []),
+    "covers_2w": (2, []),
+    "covers_2w_sequential": (2, ["runtime.pipeline=false"]),
+    "covers_cnn_2w": (2, ["runtime.method=covers-cnn", "network.kind=cnn"]),
+}
+RLLIB_SETTINGS = {  # name: (network, overrides)
+    "rllib_ppo": ("default", []),
+    "rllib_same_net_cnn": ("covers", ["runtime.method=covers-cnn", "network.kind=cnn"]),
+    "rllib_same_net_equivariant": ("covers", []),
+}
+
+
+def _ratio(out: dict[str, Any], a: str, b: str) -> float | None:
+    if a in out and b in out:
+        return round(out[a]["env_steps_per_s"] / out[b]["env_steps_per_s"], 3)
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     if args.iterations < 1 or args.warmup < 0:
         raise SystemExit("covers-dist bench train: --iterations must be >= 1 and --warmup >= 0")
+    known = [*COVERS_SETTINGS, *RLLIB_SETTINGS]
+    chosen = [s.strip() for s in args.settings.split(",")] if args.settings else known
+    unknown = [s for s in chosen if s not in known]
+    if unknown:
+        raise SystemExit(f"covers-dist bench train: unknown setting(s) {unknown}; choose from {known}")
+    if args.skip_rllib:
+        chosen = [s for s in chosen if s not in RLLIB_SETTINGS]
     cfg = load_config(args.config, args.overrides)
-    out: dict[str, Any] = {"config": args.config, "task": cfg.env.tasks[0], "image_size": cfg.env.image_size}
-    cnn = ["runtime.method=covers-cnn", "network.kind=cnn"]
-    for name, workers, extra in (("covers_1w", 1, []), ("covers_2w", 2, []), ("covers_cnn_2w", 2, cnn)):
-        r = _covers(args.config, [*args.overrides, *extra], workers, args.iterations, args.warmup)
+    out: dict[str, Any] = {
+        "config": args.config, "task": cfg.env.tasks[0], "image_size": cfg.env.image_size,
+        "space_to_depth": cfg.network.space_to_depth, "iterations": args.iterations,
+    }  # fmt: skip
+    for name in chosen:
+        if name in COVERS_SETTINGS:
+            workers, extra = COVERS_SETTINGS[name]
+            r = _covers(args.config, [*args.overrides, *extra], workers, args.iterations, args.warmup)
+            if not args.json:
+                print(f"{name}: {r['env_steps_per_s']:.0f} env steps/s end to end, "
+                      f"{r['sample_steps_per_s']:.0f} in sampling, peak RSS {r['peak_rss_gib']:.2f} GiB "
+                      f"over {r['processes']} processes", flush=True)
+        else:
+            network, extra = RLLIB_SETTINGS[name]
+            r = _rllib(args.config, [*args.overrides, *extra], args.iterations, args.warmup, network)
+            if not args.json:
+                print(f"{name}: {r['env_steps_per_s']:.0f} env steps/s", flush=True)
         out[name] = {k: round(v, 3) for k, v in r.items()}
-        if not args.json:
-            print(f"{name}: {r['env_steps_per_s']:.0f} env steps/s end to end, "
-                  f"{r['sample_steps_per_s']:.0f} in sampling, peak RSS {r['peak_rss_gib']:.2f} GiB "
-                  f"over {r['processes']} processes", flush=True)
-    out["sampling_speedup_2w_vs_1w"] = round(
-        out["covers_2w"]["sample_steps_per_s"] / out["covers_1w"]["sample_steps_per_s"], 3
-    )
-    out["peak_rss_gib"] = max(out["covers_1w"]["peak_rss_gib"], out["covers_2w"]["peak_rss_gib"])
-    if not args.skip_rllib:
-        rl = _rllib(args.config, args.overrides, args.iterations, args.warmup)
-        out["rllib_ppo"] = {k: round(v, 3) for k, v in rl.items()}
-        out["covers_to_rllib"] = round(out["covers_2w"]["env_steps_per_s"] / rl["env_steps_per_s"], 3)
-        out["covers_cnn_to_rllib"] = round(out["covers_cnn_2w"]["env_steps_per_s"] / rl["env_steps_per_s"], 3)
+    if "covers_1w" in out and "covers_2w" in out:
+        out["sampling_speedup_2w_vs_1w"] = round(
+            out["covers_2w"]["sample_steps_per_s"] / out["covers_1w"]["sample_steps_per_s"], 3
+        )
+    rss = [v["peak_rss_gib"] for k, v in out.items() if isinstance(v, dict) and "peak_rss_gib" in v]
+    if rss:
+        out["peak_rss_gib"] = max(rss)
+    ratios = {
+        "end_to_end_2w_vs_1w": ("covers_2w", "covers_1w"),
+        "pipeline_vs_sequential": ("covers_2w", "covers_2w_sequential"),
+        "covers_to_rllib": ("covers_2w", "rllib_ppo"),
+        "covers_cnn_to_rllib": ("covers_cnn_2w", "rllib_ppo"),
+        "covers_to_rllib_same_net": ("covers_2w", "rllib_same_net_equivariant"),
+        "covers_cnn_to_rllib_same_net": ("covers_cnn_2w", "rllib_same_net_cnn"),
+    }
+    for key, (a, b) in ratios.items():
+        value = _ratio(out, a, b)
+        if value is not None:
+            out[key] = value
     print(json.dumps(out) if args.json else json.dumps(out, indent=1))
     return 0

@@ -156,6 +156,10 @@ class Trainer:
         self._publish_handle(policy_id, handle)
         return stats
 
+    def drain(self) -> dict[str, Any]:
+        """Finish and publish the update still in flight (pipelined loop); its statistics ({} if none)."""
+        return self._finish_update()
+
     def step(self) -> dict[str, Any]:
         """One iteration; returns the metrics row.
 
