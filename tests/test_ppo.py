@@ -252,6 +252,11 @@ def test_bench_learner_prints_json(capsys):
     assert kinds == {"equivariant", "cnn", "cnn_matched_channels"}
     summary = [row for row in rows if row["kind"] == "summary"]
     assert summary and summary[0]["update_ratio_equivariant_to_cnn"] > 0
+    assert {row["space_to_depth"] for row in rows if row["kind"] == "net"} == {1, 2}
+    stems = [row for row in rows if row["kind"] == "stem"]
+    assert {row["net"] for row in stems} == {"equivariant", "cnn"} and all(row["update_speedup"] > 0 for row in stems)
+    with pytest.raises(SystemExit, match="--space-to-depth takes values among 1, 2, 4"):
+        cli_main(["bench", "learner", "--space-to-depth", "3"])
 
 
 def test_precision_resolves_to_native_bf16_only_and_a_bf16_update_keeps_fp32_weights(tmp_path):

@@ -54,14 +54,28 @@ def _cluster(nodes: int, cpus: int) -> Any:
         from ray._private import ray_constants
 
         ray_constants.ENABLE_RAY_CLUSTER = False  # every node binds and talks on 127.0.0.1
+    import ray._common.utils as common_utils
+    import ray._private.utils as private_utils
     from ray.cluster_utils import Cluster
 
     tmp = tempfile.mkdtemp(prefix="covers-cluster-")
+    # cluster_utils records (and at shutdown deletes) "the current cluster" in Ray's machine-wide
+    # default temp dir, where any other ray.init() on the machine would find it: keep it in ours
+    write, reset = private_utils.write_ray_address, common_utils.reset_ray_address
+    private_utils.write_ray_address = lambda address, temp_dir=None: write(address, temp_dir or tmp)
+    common_utils.reset_ray_address = lambda temp_dir=None: reset(temp_dir or tmp)
     args = {"num_cpus": cpus, "node_ip_address": "127.0.0.1", "temp_dir": tmp}
-    cluster = Cluster(initialize_head=True, head_node_args={**args, "include_dashboard": False})
-    for _ in range(nodes - 1):
-        cluster.add_node(**args)
-    cluster.wait_for_nodes()
+    try:
+        cluster = Cluster(initialize_head=True, head_node_args={**args, "include_dashboard": False})
+        for _ in range(nodes - 1):
+            cluster.add_node(**args)
+        cluster.wait_for_nodes()
+    except BaseException:
+        private_utils.write_ray_address, common_utils.reset_ray_address = write, reset
+        raise
+    cluster.restore = lambda: setattr(private_utils, "write_ray_address", write) or setattr(
+        common_utils, "reset_ray_address", reset
+    )
     return cluster
 
 
@@ -76,6 +90,7 @@ def _measure(cfg_path: str, overrides: list[str], nodes: int, cpus: int, iters: 
     finally:
         ray.shutdown()
         cluster.shutdown()
+        cluster.restore()
 
 
 def project(measured: dict[str, float], steps_per_iter: float, workers: int, update_samples_per_s: float,
