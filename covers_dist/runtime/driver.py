@@ -135,6 +135,13 @@ class Trainer:
         self.backend.ensure_learner(policy_id)
         _, weights = self.backend.call_learner(policy_id, "weights")
         self._publish(policy_id, weights)
+        self._prepare_next_learner()
+
+    def _prepare_next_learner(self) -> None:
+        """Start the next policy's learner ahead of time (the bank numbers policies 0, 1, 2, ...),
+        unless the method keeps a single policy."""
+        if self.cfg.runtime.method not in ("equi", "cnn"):
+            self.backend.prepare_learner(max(self.versions) + 1)
 
     def _complete_pending(self) -> tuple[int, dict[str, Any], Any] | None:
         """Wait for the submitted update (if any) without publishing it: (policy, statistics, weights handle)."""
@@ -322,6 +329,7 @@ class Trainer:
                 self._pending_update = (pid, _Completed(stats, self.backend.publish(weights)))
             else:
                 self._publish(pid, weights)
+        self._prepare_next_learner()
         self.evaluation.rewind(self.iteration)
         self.log(f"resumed from {path} (iteration {self.iteration}, {self.env_steps} env steps)")
 
