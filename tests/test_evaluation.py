@@ -415,15 +415,22 @@ def test_evaluation_does_not_change_training(runs):
     assert not (off / "eval.jsonl").exists()
     cols = ("iteration", "env_steps", "policy_id", "num_policies", "ari", "ppo/policy_loss", "ppo/value_loss")
     rows_on = [r for r in lines(on / "metrics.jsonl") if "eval/average_success" not in r or r["iteration"] != 3]
-    assert [[r[c] for c in cols] for r in rows_on] == [[r[c] for c in cols] for r in lines(off / "metrics.jsonl")]
+    assert [[r.get(c) for c in cols] for r in rows_on] == [[r.get(c) for c in cols] for r in lines(off / "metrics.jsonl")]
     ckpt_on, ckpt_off = on / "checkpoints" / "ckpt-000003", off / "checkpoints" / "ckpt-000003"
-    # the driver state, random-number generator states included, is the same
-    assert json.loads((ckpt_on / "driver.json").read_text()) == json.loads((ckpt_off / "driver.json").read_text())
+    # the driver state, random-number generator states included, is the same (but for the timing
+    # of the update in flight)
+    states = [json.loads((c / "driver.json").read_text()) for c in (ckpt_on, ckpt_off)]
+    for state in states:
+        for key in ("ppo/update_time_s", "ppo/samples_per_s"):
+            state.get("pending_update", {}).get("stats", {}).pop(key, None)
+    assert states[0] == states[1]
     learners = sorted(p.name for p in (ckpt_off / "learners").iterdir())
     assert learners == sorted(p.name for p in (ckpt_on / "learners").iterdir())
-    for name in learners:
-        a = torch.load(ckpt_on / "learners" / name, weights_only=False)["ppo"]["model"]
-        b = torch.load(ckpt_off / "learners" / name, weights_only=False)["ppo"]["model"]
+    for name in learners:  # policy-N.pt: learner states; sampling-N.pt: weights (pipelined loop)
+        a = torch.load(ckpt_on / "learners" / name, weights_only=False)
+        b = torch.load(ckpt_off / "learners" / name, weights_only=False)
+        if name.startswith("policy-"):
+            a, b = a["ppo"]["model"], b["ppo"]["model"]
         assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 

@@ -8,6 +8,8 @@ Layout of ``RUN_DIR/checkpoints/``::
         config.yaml         the run's config
         bank/               the policy bank (covers_dist.clustering persistence format)
         learners/policy-N.pt  model + optimizer + schedule state of each learner (torch.save)
+        learners/sampling-N.pt  pipelined loop only: the weights policy N samples with until the
+                            update in flight when the checkpoint was written is published
 
 A checkpoint is written into a hidden temporary directory and renamed into place only when every
 file is written and hashed, so a crash leaves either the old or the new checkpoint, never half of

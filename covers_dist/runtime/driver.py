@@ -299,7 +299,7 @@ class Trainer:
                 torch.save(self.backend.call_learner(pid, "state_dict"), tmp / "learners" / f"policy-{pid}.pt")
             if pending is not None:
                 sampling = resolve_weights(self.handles[pending[0]])
-                torch.save(sampling, tmp / "learners" / f"policy-{pending[0]}.sampling.pt")
+                torch.save(sampling, tmp / "learners" / f"sampling-{pending[0]}.pt")
 
         return write_checkpoint(self.run_dir, self.iteration, write)
 
@@ -323,7 +323,7 @@ class Trainer:
             if pending is not None and pending["policy_id"] == pid:
                 # the update in flight when the checkpoint was written: workers keep sampling with
                 # the weights before it until the next iteration publishes it, as they would have
-                sampling = torch.load(path / "learners" / f"policy-{pid}.sampling.pt", weights_only=False)
+                sampling = torch.load(path / "learners" / f"sampling-{pid}.pt", weights_only=False)
                 self._publish(pid, sampling)
                 stats = {k.split("/", 1)[1]: v for k, v in pending["stats"].items()}
                 self._pending_update = (pid, _Completed(stats, self.backend.publish(weights)))
@@ -384,6 +384,11 @@ class Trainer:
     def start_evaluation(self) -> None:
         """Evaluate every (task, g) with the bank as it is now (serial: in place; Ray: in the background)."""
         weights_map = {pid: (self.versions[pid], self.handles[pid]) for pid in self.versions}
+        done = self._complete_pending()
+        if done is not None:
+            # the newest weights, the update still in flight included; they are not published, so
+            # training's schedule is unchanged (a negative version: never one that workers hold)
+            weights_map[done[0]] = (-(self.weight_version + 1), done[2])
         confusion = self.backend.call_clustering("metrics").get("confusion", {})
         info = {
             "iteration": self.iteration,
