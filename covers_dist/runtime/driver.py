@@ -175,7 +175,7 @@ class Trainer:
         iteration's sampling runs while the previous iteration's update finishes; those weights are
         published before this iteration's assignment, and this iteration's update is submitted and
         left running (the row reports the previous update's statistics). Sampling therefore uses
-        the sampling policy's weights from one update earlier (docs/architecture.md, "Pipelining").
+        the sampling policy's weights from one update earlier (docs/runtime.md, "Pipelining").
         """
         plan = self._plan()
         reset = self.cfg.clustering.assign_at == "reset"
