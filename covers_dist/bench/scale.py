@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import tempfile
 from typing import Any
 
@@ -49,11 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _cluster(nodes: int, cpus: int) -> Any:
     """A loopback-only cluster of ``nodes`` nodes (started here, shut down by the caller)."""
-    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-    if os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] == "0":
-        from ray._private import ray_constants
+    from ..runtime.ray_setup import loopback_only
 
-        ray_constants.ENABLE_RAY_CLUSTER = False  # every node binds and talks on 127.0.0.1
+    loopback_only()  # every node binds and talks on 127.0.0.1
     import ray._common.utils as common_utils
     import ray._private.utils as private_utils
     from ray.cluster_utils import Cluster

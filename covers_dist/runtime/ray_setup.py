@@ -12,7 +12,7 @@ import os
 import tempfile
 from typing import Any
 
-__all__ = ["init_ray", "shutdown_ray", "resolve_weights"]
+__all__ = ["init_ray", "loopback_only", "shutdown_ray", "resolve_weights"]
 
 _STARTED_HERE = False
 
@@ -30,13 +30,7 @@ def init_ray(num_cpus: int, address: str | None = None, num_gpus: float | None =
         ray.init(address=address, log_to_driver=True)
         return ray
     # only for an instance we start ourselves: a cluster's nodes must advertise their real address
-    # (read by Ray at import time, so also set on the already-imported constants module; the
-    # processes Ray spawns inherit the variable)
-    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-    if os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] == "0":
-        from ray._private import ray_constants
-
-        ray_constants.ENABLE_RAY_CLUSTER = False
+    loopback_only()
     tmp = tempfile.mkdtemp(prefix="covers-ray-")
     ray.init(
         num_cpus=num_cpus,
@@ -49,6 +43,17 @@ def init_ray(num_cpus: int, address: str | None = None, num_gpus: float | None =
     )
     _STARTED_HERE = True
     return ray
+
+
+def loopback_only() -> None:
+    """Make Ray processes started from here bind and talk on 127.0.0.1 only (unless the caller set
+    ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER`` otherwise). Ray reads the variable at import time, so it
+    is also set on the already-imported constants module; the processes Ray spawns inherit it."""
+    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+    if os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] == "0":
+        from ray._private import ray_constants
+
+        ray_constants.ENABLE_RAY_CLUSTER = False
 
 
 def shutdown_ray() -> None:
