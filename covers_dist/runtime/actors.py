@@ -5,8 +5,11 @@
   episode index), so nothing is lost or doubled;
 * the clustering actor: named ``covers-clustering-<run name>`` in namespace ``covers-dist``, no CPU reserved (it is light),
   restarted from its persisted state, with assignments made idempotent by iteration number;
-* learners: one per policy, on a GPU when ``runtime.num_gpus > 0``;
+* learners: one per policy, on a GPU when ``runtime.num_gpus > 0``, restarted with the
+  policy's state after its newest update (see :mod:`.learner`); a retried update is applied once;
 * evaluation workers: rollout workers that run evaluation episodes (``eval.num_cpus`` each).
+
+Every actor records its PID in ``RUN_DIR/processes/`` when it starts (:mod:`.processes`).
 """
 
 from __future__ import annotations
@@ -16,19 +19,25 @@ from typing import Any
 import ray
 
 from ..config import Config
-from .backends import split_first_frames
+from .backends import EVAL_WORKER_INDEX, split_first_frames
 from .clustering_service import ClusteringService
 from .learner import PolicyLearner
+from .processes import announce
 from .rollout import RolloutWorker
 
 __all__ = ["rollout_actor", "eval_actor", "clustering_actor", "learner_actor", "clustering_actor_name"]
 
-MAX_RESTARTS = 8
+#: Restarts of a worker or learner actor before Ray gives up on it (its state survives restarts).
+MAX_RESTARTS = 100
 #: Ray namespace of the named clustering actor (so services can find it from any job).
 ACTOR_NAMESPACE = "covers-dist"
 
 
 class _RolloutHost(RolloutWorker):
+    def __init__(self, cfg: Config, worker_index: int = 0, run_dir: str | None = None) -> None:
+        super().__init__(cfg, worker_index)
+        announce(run_dir, "eval" if worker_index >= EVAL_WORKER_INDEX else "worker", worker_index)
+
     def sample_split(self, specs, policy_id, version, handle, k):  # noqa: ANN001
         episodes = self.sample(specs, policy_id, version, handle)
         firsts, summaries = split_first_frames(episodes, k)
@@ -40,13 +49,25 @@ class _RolloutHost(RolloutWorker):
         return os.getpid()
 
 
+class _LearnerHost(PolicyLearner):
+    def __init__(self, cfg: Config, policy_id: int, device: str | None = None, run_dir: str | None = None) -> None:
+        super().__init__(cfg, policy_id, device, run_dir)
+        announce(run_dir, "learner", policy_id)
+
+
+class _ClusteringHost(ClusteringService):
+    def __init__(self, cfg: Config, run_dir: str) -> None:
+        super().__init__(cfg, run_dir)
+        announce(run_dir, "clustering")
+
+
 def rollout_actor(cfg: Config) -> Any:
     return ray.remote(num_cpus=1, max_restarts=MAX_RESTARTS, max_task_retries=-1)(_RolloutHost)
 
 
 def eval_actor(cfg: Config) -> Any:
     """Evaluation workers: rollout workers reserving ``eval.num_cpus`` (0 by default)."""
-    return ray.remote(num_cpus=cfg.eval.num_cpus, max_restarts=MAX_RESTARTS, max_task_retries=-1)(RolloutWorker)
+    return ray.remote(num_cpus=cfg.eval.num_cpus, max_restarts=MAX_RESTARTS, max_task_retries=-1)(_RolloutHost)
 
 
 def clustering_actor_name(cfg: Config) -> str:
@@ -55,7 +76,7 @@ def clustering_actor_name(cfg: Config) -> str:
 
 def clustering_actor(cfg: Config, run_dir: str) -> Any:
     """Create (or get) the named clustering actor of this run."""
-    cls = ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)(ClusteringService)
+    cls = ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)(_ClusteringHost)
     return cls.options(
         name=clustering_actor_name(cfg), namespace=ACTOR_NAMESPACE, get_if_exists=True, lifetime=None
     ).remote(cfg, run_dir)
@@ -63,4 +84,4 @@ def clustering_actor(cfg: Config, run_dir: str) -> Any:
 
 def learner_actor(cfg: Config) -> Any:
     gpus = cfg.runtime.num_gpus if cfg.runtime.num_gpus > 0 else 0
-    return ray.remote(num_cpus=cfg.runtime.learner_num_cpus, num_gpus=gpus, max_restarts=MAX_RESTARTS, max_task_retries=-1)(PolicyLearner)
+    return ray.remote(num_cpus=cfg.runtime.learner_num_cpus, num_gpus=gpus, max_restarts=MAX_RESTARTS, max_task_retries=-1)(_LearnerHost)

@@ -75,8 +75,8 @@ class SerialBackend:
     def collect_sample(self, pending: Any) -> tuple[list, list, list]:
         return pending
 
-    def submit_update(self, policy_id: int, episodes: Any) -> Any:
-        return self.learners[policy_id].update(episodes)
+    def submit_update(self, policy_id: int, episodes: Any, base_version: int) -> Any:
+        return self.learners[policy_id].update(episodes, base_version)
 
     def collect_update(self, pending: Any) -> tuple[dict[str, Any], Any]:
         """(statistics, handle of the new weights to publish) of a submitted update."""
@@ -147,9 +147,9 @@ class RayBackend:
 
         self.ray = ray
         self.cfg = cfg
-        self.run_dir = str(run_dir)
+        self.run_dir = str(Path(run_dir).resolve())  # actors may run in another working directory
         self._learner_cls = learner_actor(cfg)
-        self.workers = [rollout_actor(cfg).remote(cfg, i) for i in range(cfg.runtime.num_workers)]
+        self.workers = [rollout_actor(cfg).remote(cfg, i, self.run_dir) for i in range(cfg.runtime.num_workers)]
         self.clustering = clustering_actor(cfg, self.run_dir)
         self.learners: dict[int, Any] = {}
         self._spare: dict[int, Any] = {}  # learners started ahead of their policy (prepare_learner)
@@ -166,8 +166,8 @@ class RayBackend:
             if specs
         ]
 
-    def submit_update(self, policy_id: int, episodes: Any) -> Any:
-        return self.learners[policy_id].update.options(num_returns=3).remote(episodes)
+    def submit_update(self, policy_id: int, episodes: Any, base_version: int) -> Any:
+        return self.learners[policy_id].update.options(num_returns=3).remote(episodes, base_version)
 
     def collect_update(self, pending: Any) -> tuple[dict[str, Any], Any]:
         """Waits for the statistics only: the new weights stay in the object store, and their
@@ -203,7 +203,7 @@ class RayBackend:
     def ensure_learner(self, policy_id: int) -> None:
         if policy_id not in self.learners:
             spare = self._spare.pop(policy_id, None)
-            self.learners[policy_id] = spare if spare is not None else self._learner_cls.remote(self.cfg, policy_id)
+            self.learners[policy_id] = spare if spare is not None else self._new_learner(policy_id)
 
     def prepare_learner(self, policy_id: int) -> None:
         """Start the learner actor of the policy the bank would create next, in the background.
@@ -213,14 +213,18 @@ class RayBackend:
         creates the policy. Its weights are seeded by the policy id alone, so nothing else changes.
         """
         if policy_id not in self.learners and policy_id not in self._spare:
-            self._spare[policy_id] = self._learner_cls.remote(self.cfg, policy_id)
+            self._spare[policy_id] = self._new_learner(policy_id)
+
+    def _new_learner(self, policy_id: int) -> Any:
+        """A learner actor that persists its state after every update (a restart reloads it)."""
+        return self._learner_cls.remote(self.cfg, policy_id, None, self.run_dir)
 
     def call_learner(self, policy_id: int, method: str, *args: Any) -> Any:
         return self.ray.get(getattr(self.learners[policy_id], method).remote(*args))
 
     def eval_executors(self) -> "RayEvalExecutors":
         if self._eval is None:
-            self._eval = RayEvalExecutors(self.cfg)
+            self._eval = RayEvalExecutors(self.cfg, self.run_dir)
         return self._eval
 
     def shutdown(self) -> None:
@@ -235,14 +239,14 @@ class RayBackend:
 class RayEvalExecutors:
     """``eval.workers`` evaluation actors (rollout workers reserving ``eval.num_cpus`` each)."""
 
-    def __init__(self, cfg: Config) -> None:
+    def __init__(self, cfg: Config, run_dir: str | None = None) -> None:
         import ray
 
         from .actors import eval_actor
 
         self.ray = ray
         cls = eval_actor(cfg)
-        self.actors = [cls.remote(cfg, EVAL_WORKER_INDEX + i) for i in range(cfg.eval.workers)]
+        self.actors = [cls.remote(cfg, EVAL_WORKER_INDEX + i, run_dir) for i in range(cfg.eval.workers)]
 
     @property
     def size(self) -> int:

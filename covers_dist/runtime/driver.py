@@ -33,8 +33,11 @@ import yaml
 from ..config import Config, config_to_dict, load_config
 from ..envs.stream import TaskStream
 from .checkpoint import latest_valid_checkpoint, write_checkpoint
+from .clustering_service import LIVE_DIR as CLUSTERING_LIVE_DIR
 from .evaluation import PeriodicEvaluation, evaluation_pass
+from .learner import LIVE_DIR, live_state_path
 from .metrics import M, MetricsWriter, Progress
+from .processes import announce
 from .ray_setup import resolve_weights
 from .rollout import EpisodeSpec
 
@@ -60,6 +63,7 @@ class Trainer:
         self.current_policy = 0
         self.weight_version = 0
         self.versions: dict[int, int] = {}
+        self.learner_versions: dict[int, int] = {}  # each learner's version once its submitted updates are done
         self.handles: dict[int, Any] = {}
         self.success: dict[str, float] = {}
         self.returns: dict[str, float] = {}
@@ -75,6 +79,9 @@ class Trainer:
             self._resume_from = latest_valid_checkpoint(self.run_dir, log=self.log)
             if self._resume_from is None:
                 raise FileNotFoundError(f"no valid checkpoint to resume from in {self.run_dir}/checkpoints")
+        else:  # a new run: live states left by an earlier run in this directory are not this run's
+            _drop_live_states(self.run_dir)
+            shutil.rmtree(self.run_dir / CLUSTERING_LIVE_DIR, ignore_errors=True)
         if cfg.runtime.serial:
             from .backends import SerialBackend
 
@@ -133,7 +140,7 @@ class Trainer:
 
     def _new_policy(self, policy_id: int) -> None:
         self.backend.ensure_learner(policy_id)
-        _, weights = self.backend.call_learner(policy_id, "weights")
+        self.learner_versions[policy_id], weights = self.backend.call_learner(policy_id, "weights")
         self._publish(policy_id, weights)
         self._prepare_next_learner()
 
@@ -204,7 +211,9 @@ class Trainer:
                 record = self._assign(obs, summaries)
         chosen = int(record["policy_id"])
         with self._phase("submit"):  # serial backend: the update itself runs here
-            self._pending_update = (chosen, self.backend.submit_update(chosen, episodes))
+            base = self.learner_versions[chosen]  # a retried update from this version is applied once
+            self._pending_update = (chosen, self.backend.submit_update(chosen, episodes, base))
+            self.learner_versions[chosen] = base + 1
         if not self.cfg.runtime.pipeline:
             with self._phase("update"):
                 stats = self._finish_update()
@@ -315,11 +324,12 @@ class Trainer:
         self.stream.load_state_dict(state["stream"])
         self.backend.call_clustering("load", str(path / "bank"))
         pending = state.get("pending_update")
+        _drop_live_states(self.run_dir, keep=state["policies"])  # policies created after this checkpoint
         for pid in state["policies"]:
             self.backend.ensure_learner(pid)
             learner_state = torch.load(path / "learners" / f"policy-{pid}.pt", weights_only=False)
             self.backend.call_learner(pid, "load_state_dict", learner_state)
-            _, weights = self.backend.call_learner(pid, "weights")
+            self.learner_versions[pid], weights = self.backend.call_learner(pid, "weights")
             if pending is not None and pending["policy_id"] == pid:
                 # the update in flight when the checkpoint was written: workers keep sampling with
                 # the weights before it until the next iteration publishes it, as they would have
@@ -341,6 +351,7 @@ class Trainer:
     def run(self) -> dict[str, Any]:
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         writer = MetricsWriter(self.run_dir)
+        announce(self.run_dir, "driver")
         try:
             if self._resume_from is not None:
                 self._restore(self._resume_from)
@@ -433,6 +444,17 @@ class _Completed:
     handle: Any
 
 
+def _drop_live_states(run_dir: Path, keep: list[int] | None = None) -> None:
+    """Remove the learners' live states (:mod:`.learner`) of policies not in ``keep`` (all if None)."""
+    live = run_dir / LIVE_DIR
+    if not live.is_dir():
+        return
+    kept = {live_state_path(run_dir, pid).name for pid in keep or []}
+    for f in live.iterdir():
+        if f.name not in kept:
+            f.unlink(missing_ok=True)
+
+
 def _field(item: Any, name: str) -> Any:
     return item[name] if isinstance(item, dict) else getattr(item, name)
 
@@ -460,7 +482,7 @@ def train(
                 f"{run_dir} already holds a run: continue it with --resume {run_dir}, "
                 "choose another --run-dir, or pass --overwrite to start over"
             )
-        for name in ("checkpoints", "clustering_live", "tb"):
+        for name in ("checkpoints", CLUSTERING_LIVE_DIR, LIVE_DIR, "tb"):
             shutil.rmtree(run_dir / name, ignore_errors=True)
         for name in ("metrics.jsonl", "episodes.jsonl", "eval.jsonl"):
             (run_dir / name).unlink(missing_ok=True)

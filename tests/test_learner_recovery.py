@@ -1,0 +1,110 @@
+"""Learners that survive: a restarted learner comes back with the policy's newest weights,
+optimizer state and version, and a retried update is applied exactly once."""
+
+import os
+import signal
+import time
+
+import pytest
+import torch
+
+from covers_dist.runtime.driver import Trainer
+from covers_dist.runtime.learner import PolicyLearner, live_state_path
+from covers_dist.runtime.processes import list_processes
+from covers_dist.runtime.rollout import EpisodeSpec, RolloutWorker
+
+from test_pipeline import _run, _same_weights
+from test_runtime_serial import assignments, tiny_cfg
+
+
+@pytest.fixture(scope="module")
+def batches(tmp_path_factory):
+    """Two real batches of episodes (a rollout worker with policy 0's initial weights)."""
+    cfg = tiny_cfg(tmp_path_factory.mktemp("eps"))
+    weights = PolicyLearner(cfg, 0).weights()[1]
+    worker = RolloutWorker(cfg, 0)
+    out = [worker.sample([EpisodeSpec(i, "reach", "e", 0) for i in range(b * 4, b * 4 + 4)], 0, 1, weights) for b in (0, 1)]
+    worker.close()
+    return cfg, out
+
+
+def _equal(a, b):
+    assert a.keys() == b.keys()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_restarted_learner_resumes_its_state_and_applies_a_retried_update_once(batches, tmp_path):
+    cfg, (first, second) = batches
+    reference = PolicyLearner(cfg, 0)  # never restarted
+    ref1 = reference.update(first, 0)
+    ref2 = reference.update(second, 1)
+
+    crashed = PolicyLearner(cfg, 0, run_dir=str(tmp_path))
+    got1 = crashed.update(first, 0)
+    assert live_state_path(tmp_path, 0).is_file()
+    del crashed  # the process dies after the update, before the caller saw its result
+
+    restarted = PolicyLearner(cfg, 0, run_dir=str(tmp_path))  # what Ray does: the constructor again
+    assert restarted.restored and restarted.version == 1
+    retried = restarted.update(first, 0)  # the caller retries the same call
+    assert restarted.version == 1 and retried[1] == got1[1] == ref1[1] == 1
+    assert retried[0] == got1[0]  # the stored result: not applied a second time
+    _equal(retried[2], ref1[2])
+    got2 = restarted.update(second, 1)
+    assert got2[1] == 2
+    _equal(got2[2], ref2[2])  # weights, Adam moments and the shuffling RNG all came back
+    # the pipelined loop's previous result is kept too (lost weights are re-created by re-execution)
+    _equal(restarted.update(first, 0)[2], ref1[2])
+    with pytest.raises(RuntimeError, match="version 2 but an update from version 5"):
+        restarted.update(first, 5)
+
+
+def test_unreadable_live_state_is_a_clear_error(batches, tmp_path):
+    cfg, (first, _) = batches
+    PolicyLearner(cfg, 0, run_dir=str(tmp_path)).update(first, 0)
+    live_state_path(tmp_path, 0).write_bytes(b"not a torch file")
+    with pytest.raises(RuntimeError, match="unreadable.*--resume"):
+        PolicyLearner(cfg, 0, run_dir=str(tmp_path))
+
+
+def test_checkpoint_state_becomes_the_live_state(batches, tmp_path):
+    cfg, (first, second) = batches
+    learner = PolicyLearner(cfg, 0, run_dir=str(tmp_path))
+    learner.update(first, 0)
+    saved = learner.state_dict()
+    learner.update(second, 1)
+    learner.load_state_dict(saved)  # a resume from a checkpoint older than the live state
+    assert PolicyLearner(cfg, 0, run_dir=str(tmp_path)).version == 1
+
+
+def _wait_for_new_pid(run_dir, role, old_pid, timeout_s=90):
+    deadline = time.time() + timeout_s
+    while time.time() < deadline:
+        for p in list_processes(run_dir):
+            if p["role"] == role and p["pid"] != old_pid:
+                return p["pid"]
+        time.sleep(0.2)
+    raise AssertionError(f"no restarted {role} within {timeout_s} s")
+
+
+def test_learner_killed_during_updates_ends_where_the_clean_run_ends(ray_local, tmp_path):
+    serial = _run(tiny_cfg(tmp_path / "s", "runtime.total_env_steps=1600"))
+    cfg = tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false")
+    trainer = Trainer(cfg, log=lambda *_: None)
+    trainer._new_policy(0)
+    kills = 0
+    while trainer.env_steps < cfg.runtime.total_env_steps:
+        trainer.step()  # leaves this iteration's update running on its learner
+        if trainer.iteration in (1, 3):
+            (learner,) = [p for p in list_processes(tmp_path / "r") if p["role"] == "learner" and p["index"] == 0]
+            os.kill(learner["pid"], signal.SIGKILL)  # mid-update (or just after it: both must hold)
+            kills += 1
+            _wait_for_new_pid(tmp_path / "r", "learner", learner["pid"])
+    trainer.drain()
+    got = assignments(trainer), {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.versions)}
+    versions = {pid: trainer.backend.call_learner(pid, "weights")[0] for pid in sorted(trainer.versions)}
+    trainer.close()
+    assert kills == 2
+    assert got[0] == serial[0]
+    _same_weights(got[1], serial[1])
+    assert versions[0] == sum(1 for pid, _ in serial[0] if pid == 0)  # one version per update: none doubled
