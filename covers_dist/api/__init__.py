@@ -10,7 +10,7 @@ See docs/api.md for the endpoints and the JSON shape of observations.
 
 from .app import TOKEN_ENV, create_app, resolve_token
 from .observations import ObservationError, decode_observations, encode_png, observation_json
-from .server import ApiServerProcess, ApiServerThread, start_api_server
+from .server import ApiServerProcess, ApiServerThread, SupervisedApiServer, start_api_server, training_service
 from .sources import LocalSource, RaySource, Source, SourceUnavailable, load_checkpoint_source
 
 __all__ = [
@@ -29,4 +29,6 @@ __all__ = [
     "observation_json",
     "resolve_token",
     "start_api_server",
+    "SupervisedApiServer",
+    "training_service",
 ]

@@ -12,6 +12,7 @@ starts the service and returns a handle with ``.url`` and ``.stop()``.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -24,9 +25,13 @@ from typing import Any, Protocol
 import yaml
 
 from ..config import Config, config_to_dict
+from ..runtime.processes import announce
 from .sources import LocalSource, RaySource, Source
 
-__all__ = ["ApiHandle", "ApiServerThread", "ApiServerProcess", "start_api_server", "LISTENING"]
+__all__ = [
+    "ApiHandle", "ApiServerThread", "ApiServerProcess", "SupervisedApiServer", "start_api_server",
+    "training_service", "LISTENING",
+]  # fmt: skip
 
 #: The line ``covers-dist serve`` prints once it accepts connections (followed by the URL).
 LISTENING = "covers-dist serve: listening on "
@@ -114,6 +119,11 @@ class ApiServerProcess:
                 self._ready.set()
         self._ready.set()
 
+    @property
+    def alive(self) -> bool:
+        """True while the child process runs."""
+        return self.proc.poll() is None
+
     def start(self, timeout_s: float = 120.0) -> "ApiServerProcess":
         self._reader.start()
         if not self._ready.wait(timeout_s) or not self.url:
@@ -178,3 +188,55 @@ def start_api_server(cfg: Config, source: Any, mode: str = "auto", timeout_s: fl
     from .app import create_app
 
     return ApiServerThread(create_app(cfg, src), cfg.api.host, cfg.api.port).start(timeout_s)
+
+
+class SupervisedApiServer:
+    """The HTTP service of a training run, restarted on the same port when it dies.
+
+    :meth:`check` (the driver calls it after every iteration) starts a new server if the old one
+    stopped, on the port the first one bound (so clients keep their URL). The service's PID is
+    recorded in ``RUN_DIR/processes/api.json``.
+    """
+
+    def __init__(self, cfg: Config, source: Any, log: Any = print) -> None:
+        self.cfg = cfg
+        self.source = source
+        self.log = log
+        self.restarts = 0
+        self.handle: Any = None
+
+    @property
+    def url(self) -> str:
+        return self.handle.url if self.handle is not None else ""
+
+    def start(self) -> "SupervisedApiServer":
+        self.handle = start_api_server(self.cfg, self.source)
+        if self.cfg.api.port == 0:  # keep the port it got for restarts
+            port = int(self.handle.url.rsplit(":", 1)[1])
+            self.cfg = dataclasses.replace(self.cfg, api=dataclasses.replace(self.cfg.api, port=port))
+        proc = getattr(self.handle, "proc", None)
+        announce(self.cfg.runtime.run_dir, "api", pid=proc.pid if proc is not None else os.getpid())
+        return self
+
+    def check(self) -> None:
+        """Restart the service if it stopped."""
+        if self.handle is None or getattr(self.handle, "alive", True):
+            return
+        self.log("HTTP service stopped; restarting it")
+        self.handle.stop()
+        self.restarts += 1
+        self.start()
+        self.log(f"HTTP service restarted: {self.url}")
+
+    def stop(self) -> None:
+        if self.handle is not None:
+            self.handle.stop()
+
+
+def training_service(cfg: Config, source: Any, log: Any = print) -> SupervisedApiServer | None:
+    """The HTTP service a training run starts (``api.enabled``), supervised; None when disabled."""
+    if not cfg.api.enabled:
+        return None
+    service = SupervisedApiServer(cfg, source, log).start()
+    log(f"HTTP service: {service.url} (e.g. curl {service.url}/v1/assignment; docs at {service.url}/docs)")
+    return service

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 from typing import Any
 
 from ..config import load_config
@@ -48,46 +47,26 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _cluster(nodes: int, cpus: int) -> Any:
     """A loopback-only cluster of ``nodes`` nodes (started here, shut down by the caller)."""
-    from ..runtime.ray_setup import loopback_only
+    from ..runtime.local_cluster import LocalCluster
 
-    loopback_only()  # every node binds and talks on 127.0.0.1
-    import ray._common.utils as common_utils
-    import ray._private.utils as private_utils
-    from ray.cluster_utils import Cluster
-
-    tmp = tempfile.mkdtemp(prefix="covers-cluster-")
-    # cluster_utils records (and at shutdown deletes) "the current cluster" in Ray's machine-wide
-    # default temp dir, where any other ray.init() on the machine would find it: keep it in ours
-    write, reset = private_utils.write_ray_address, common_utils.reset_ray_address
-    private_utils.write_ray_address = lambda address, temp_dir=None: write(address, temp_dir or tmp)
-    common_utils.reset_ray_address = lambda temp_dir=None: reset(temp_dir or tmp)
-    args = {"num_cpus": cpus, "node_ip_address": "127.0.0.1", "temp_dir": tmp}
+    cluster = LocalCluster(cpus)
     try:
-        cluster = Cluster(initialize_head=True, head_node_args={**args, "include_dashboard": False})
         for _ in range(nodes - 1):
-            cluster.add_node(**args)
-        cluster.wait_for_nodes()
+            cluster.add_node(cpus)
     except BaseException:
-        private_utils.write_ray_address, common_utils.reset_ray_address = write, reset
+        cluster.shutdown()
         raise
-    cluster.restore = lambda: setattr(private_utils, "write_ray_address", write) or setattr(
-        common_utils, "reset_ray_address", reset
-    )
     return cluster
 
 
 def _measure(cfg_path: str, overrides: list[str], nodes: int, cpus: int, iters: int, warmup: int) -> dict[str, float]:
-    import ray
-
     from .train import _covers
 
     cluster = _cluster(nodes, cpus)
     try:
         return _covers(cfg_path, overrides, nodes, iters, warmup, address=cluster.address)
     finally:
-        ray.shutdown()
         cluster.shutdown()
-        cluster.restore()
 
 
 def project(measured: dict[str, float], steps_per_iter: float, workers: int, update_samples_per_s: float,

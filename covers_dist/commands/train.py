@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     if args.resume:
         if args.overrides:
             raise SystemExit("covers-dist train: --set cannot be combined with --resume (the run's config is used)")
-        result = train(resume_dir=args.resume)
+        result = train(resume_dir=args.resume, services=_http_service)
     else:
         if args.address:
             args.overrides.append(f"runtime.ray_address={args.address}")
@@ -40,7 +40,16 @@ def run(args: argparse.Namespace) -> int:
             args.overrides.append("runtime.serial=true")
         if args.run_dir:
             args.overrides.append(f"runtime.run_dir={args.run_dir}")
-        result = train(config_from_args(args), overwrite=args.overwrite)
+        result = train(config_from_args(args), overwrite=args.overwrite, services=_http_service)
     keys = ("status", "checkpoint", "ari", "num_policies", "policy_counts")
     print(json.dumps({k: result.get(k) for k in keys}, default=str))
     return 0
+
+
+def _http_service(cfg, clustering):  # noqa: ANN001, ANN202 - the runtime's ``services`` hook
+    """The HTTP service next to training when ``api.enabled`` (restarted if it stops)."""
+    if not cfg.api.enabled:
+        return None
+    from ..api import training_service
+
+    return training_service(cfg, clustering)

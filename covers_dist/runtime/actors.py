@@ -33,10 +33,14 @@ MAX_RESTARTS = 100
 ACTOR_NAMESPACE = "covers-dist"
 
 
+def _announce(run_dir: str | None, role: str, index: int | None = None) -> None:
+    announce(run_dir, role, index, node=ray.get_runtime_context().get_node_id())
+
+
 class _RolloutHost(RolloutWorker):
     def __init__(self, cfg: Config, worker_index: int = 0, run_dir: str | None = None) -> None:
         super().__init__(cfg, worker_index)
-        announce(run_dir, "eval" if worker_index >= EVAL_WORKER_INDEX else "worker", worker_index)
+        _announce(run_dir, "eval" if worker_index >= EVAL_WORKER_INDEX else "worker", worker_index)
 
     def sample_split(self, specs, policy_id, version, handle, k):  # noqa: ANN001
         episodes = self.sample(specs, policy_id, version, handle)
@@ -52,13 +56,13 @@ class _RolloutHost(RolloutWorker):
 class _LearnerHost(PolicyLearner):
     def __init__(self, cfg: Config, policy_id: int, device: str | None = None, run_dir: str | None = None) -> None:
         super().__init__(cfg, policy_id, device, run_dir)
-        announce(run_dir, "learner", policy_id)
+        _announce(run_dir, "learner", policy_id)
 
 
 class _ClusteringHost(ClusteringService):
     def __init__(self, cfg: Config, run_dir: str) -> None:
         super().__init__(cfg, run_dir)
-        announce(run_dir, "clustering")
+        _announce(run_dir, "clustering")
 
 
 def rollout_actor(cfg: Config) -> Any:

@@ -53,6 +53,7 @@ class ClusteringService:
         self._lock = threading.RLock()
         self.last_iteration = -1
         self.last_record: dict[str, Any] | None = None
+        self.recorded_through = -1  # newest episode index whose statistics were recorded
         self.progress: dict[str, Any] = {}
         self.evaluation: dict[str, Any] = {}
         self.group_names: dict[int, str] = {i: t for i, t in enumerate(cfg.env.tasks)}
@@ -140,8 +141,13 @@ class ClusteringService:
             return self.bank.what_if(obs, group_ids=groups, policies=policies).to_dict()
 
     def record_episodes(self, summaries: list[dict[str, Any]]) -> None:
+        """Per-policy success and return of finished episodes; a retried call records nothing twice."""
         with self._lock:
-            for s in summaries:
+            new = [s for s in summaries if int(s["episode_index"]) > self.recorded_through]
+            if not new:
+                return
+            self.recorded_through = max(int(s["episode_index"]) for s in new)
+            for s in new:
                 pid = int(s.get("assigned_policy", s["policy_id"]))
                 if pid in self.bank.entries:
                     self.bank.record_episode_stats(pid, s["success"], s["return"])
@@ -211,6 +217,7 @@ class ClusteringService:
         return {
             "last_iteration": self.last_iteration,
             "last_record": self.last_record,
+            "recorded_through": self.recorded_through,
             "progress": self.progress,
             "evaluation": self.evaluation,
         }
@@ -239,6 +246,7 @@ class ClusteringService:
                 state = json.loads(service.read_text())
                 self.last_iteration = int(state["last_iteration"])
                 self.last_record = state["last_record"]
+                self.recorded_through = int(state.get("recorded_through", -1))
                 self.progress = state.get("progress", {})
                 self.evaluation = state.get("evaluation", {})
             self.versions.clear()

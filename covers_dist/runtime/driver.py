@@ -75,6 +75,7 @@ class Trainer:
         self._t_start, self._steps_at_start = time.monotonic(), 0
         self._resume_from: Path | None = None
         self._pending_update: tuple[int, Any] | None = None  # (policy id, submitted or _Completed update)
+        self.on_iteration: list[Callable[[], None]] = []  # called after every iteration (e.g. service checks)
         if resume:
             self._resume_from = latest_valid_checkpoint(self.run_dir, log=self.log)
             if self._resume_from is None:
@@ -369,6 +370,8 @@ class Trainer:
                 writer.scalars(row)
                 writer.episodes(self._last_episode_rows())
                 progress.maybe_print(row)
+                for hook in self.on_iteration:
+                    hook()
                 if self.iteration % self.cfg.runtime.checkpoint_every == 0:
                     self.checkpoint()
             if row and self.evaluation.enabled and not self._stop:  # a final pass, unless interrupted
@@ -464,10 +467,14 @@ def train(
     resume_dir: str | None = None,
     log: Callable[[str], None] = print,
     overwrite: bool = False,
+    services: Callable[[Config, Any], Any] | None = None,
 ) -> dict:
     """Run training to the end (or resume ``resume_dir``); starts Ray when the config asks for it.
 
     A new run refuses a run directory that already holds checkpoints unless ``overwrite``.
+    ``services(cfg, clustering)``: started next to training (the command that runs training
+    passes the HTTP service); it returns None or an object with ``stop()`` and, optionally,
+    ``check()``, which is called after every iteration (to restart what stopped).
     """
     if resume_dir is not None:
         cfg_path = Path(resume_dir) / "config.yaml"
@@ -493,17 +500,16 @@ def train(
         init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address, cfg.runtime.num_gpus or None)
         started = True
     trainer = Trainer(cfg, resume=resume_dir is not None, log=log)
-    api = None
+    service = None
     try:
-        if cfg.api.enabled:
-            from ..api import start_api_server
-
-            api = start_api_server(cfg, trainer.backend.clustering)
-            log(f"HTTP service: {api.url} (e.g. curl {api.url}/v1/assignment; docs at {api.url}/docs)")
+        if services is not None:
+            service = services(cfg, trainer.backend.clustering)
+            if service is not None and callable(getattr(service, "check", None)):
+                trainer.on_iteration.append(service.check)
         return trainer.run()
     finally:
-        if api is not None:
-            api.stop()
+        if service is not None:
+            service.stop()
         trainer.close()
         if started:
             shutdown_ray()

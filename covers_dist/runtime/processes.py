@@ -20,14 +20,15 @@ __all__ = ["PROCESS_DIR", "announce", "list_processes"]
 PROCESS_DIR = "processes"
 
 
-def announce(run_dir: str | Path | None, role: str, index: int | None = None) -> None:
-    """Record this process as ``role`` (``index``: worker number or policy id) of the run."""
+def announce(run_dir: str | Path | None, role: str, index: int | None = None, **extra: Any) -> None:
+    """Record this process as ``role`` (``index``: worker number or policy id) of the run;
+    ``extra``: more fields (e.g. the Ray node id)."""
     if not run_dir:
         return
     root = Path(run_dir) / PROCESS_DIR
     root.mkdir(parents=True, exist_ok=True)
     name = role if index is None else f"{role}-{index}"
-    entry = {"role": role, "index": index, "pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}
+    entry = {"role": role, "index": index, "pid": os.getpid(), "host": socket.gethostname(), "started": time.time(), **extra}
     tmp = root / f".{name}.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(entry))
     os.replace(tmp, root / f"{name}.json")

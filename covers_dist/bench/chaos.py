@@ -1,0 +1,396 @@
+"""``covers-dist bench chaos``: kill parts of a training run at random; it must end where a clean run ends.
+
+Two runs of the same config and seed, one after the other:
+
+1. **clean**: the run in this process with every component in it (``runtime.serial``; the Ray
+   run gives the same assignments and bit-identical weights, see tests/test_pipeline.py);
+2. **chaos**: ``covers-dist train`` as a child process on its own loopback-only Ray instance,
+   with the HTTP service on, while every ``--interval`` seconds (uniform in MIN..MAX, from a
+   seeded schedule) one live component is killed: a rollout worker, a learner, the clustering
+   actor or the HTTP service by SIGKILL (a crash), or the driver by SIGTERM (it checkpoints
+   and exits) followed by ``covers-dist train --resume``. Victims are found in the run's
+   ``processes/`` records.
+
+Compared at the end, from the two runs' final checkpoints and logs: the assignment of every
+batch (policy and decision), every episode index logged exactly once, and every policy's final
+weights (exactly equal, or the largest difference). ``--node-loss workers|learners`` runs a
+different fault instead: a local 2-node cluster (:mod:`covers_dist.runtime.local_cluster`) where
+the node holding the rollout workers (or the learners) is removed mid-run; the run continues on
+the surviving node. Target: identical assignments and weights after >= 20 kills.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any, Callable
+
+from ..config import Config, load_config
+
+KINDS = ("worker", "learner", "clustering", "api", "driver")
+TARGET_KILLS = 20
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("chaos", help="kill workers, learners, the clustering actor, the HTTP service and the driver "
+                       "at random; compare with a clean run")  # fmt: skip
+    p.add_argument("--config", default="configs/smoke.yaml", help="config (default: configs/smoke.yaml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--interval", default="2,5", help="seconds between kills, MIN,MAX (default: 2,5)")
+    p.add_argument("--kinds", default=",".join(KINDS), help=f"what may be killed (default: {','.join(KINDS)})")
+    p.add_argument("--seed", type=int, default=0, help="seed of the kill schedule (default: 0)")
+    p.add_argument("--max-kills", type=int, default=0, help="stop killing after this many (default: 0, no limit)")
+    p.add_argument(
+        "--node-loss", choices=("workers", "learners"),
+        help="instead of kills: remove the node holding the rollout workers (or the learners) of a 2-node cluster",
+    )  # fmt: skip
+    p.add_argument("--lose-after", type=int, default=3, help="--node-loss: iterations before the node goes (default: 3)")
+    p.add_argument("--out", help="keep both run directories under OUT (default: a temp dir, removed)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=run)
+
+
+# ---- the clean run and the comparison -------------------------------------------------------------
+def clean_run(cfg: Config) -> float:
+    """The run in this process (serial); its wall-clock seconds."""
+    from ..runtime.driver import Trainer
+
+    t0 = time.monotonic()
+    trainer = Trainer(cfg, log=lambda *_: None)
+    try:
+        trainer.run()
+    finally:
+        trainer.close()
+    return time.monotonic() - t0
+
+
+def final_state(run_dir: Path) -> dict[str, Any]:
+    """Assignments, logged episode indices and policy weights of a finished run (newest checkpoint)."""
+    import torch
+
+    from ..runtime.checkpoint import latest_valid_checkpoint
+    from ..runtime.clustering_service import ClusteringService
+
+    ckpt = latest_valid_checkpoint(run_dir, log=lambda *_: None)
+    if ckpt is None:
+        raise RuntimeError(f"{run_dir} has no valid checkpoint")
+    cfg = load_config(ckpt / "config.yaml")
+    service = ClusteringService(cfg, read_only=True)
+    service.load(str(ckpt / "bank"))
+    records = service.assignments(0, 10**9)
+    weights = {
+        int(f.stem.split("-")[1]): torch.load(f, weights_only=False)["ppo"]["model"]
+        for f in sorted((ckpt / "learners").glob("policy-*.pt"))
+    }
+    logged = [json.loads(line)["episode_index"] for line in (run_dir / "episodes.jsonl").read_text().splitlines() if line]
+    return {
+        "assignments": [(int(r["policy_id"]), r["decision"]) for r in records],
+        "assigned_episodes": [int(e) for r in records for e in r["episode_indices"]],
+        "logged_episodes": logged,
+        "weights": weights,
+        "checkpoint": ckpt.name,
+    }
+
+
+def compare(clean: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
+    """What differs between two runs' final states (see :func:`final_state`)."""
+    import torch
+
+    n = len(clean["assigned_episodes"])
+    counts = Counter(other["logged_episodes"])
+    max_diff = 0.0
+    same_keys = clean["weights"].keys() == other["weights"].keys()
+    if same_keys:
+        for pid, w in clean["weights"].items():
+            for name, t in w.items():
+                max_diff = max(max_diff, float((t.float() - other["weights"][pid][name].float()).abs().max()))
+    return {
+        "batches": len(clean["assignments"]),
+        "assignments_identical": clean["assignments"] == other["assignments"],
+        "assigned_exactly_once": sorted(other["assigned_episodes"]) == list(range(n)) == other["assigned_episodes"],
+        "logged_exactly_once": sorted(counts) == list(range(n)) and set(counts.values()) == {1},
+        "logged_doubles": sum(c - 1 for c in counts.values()),
+        "logged_missing": n - len(set(counts) & set(range(n))),
+        "policies": sorted(other["weights"]),
+        "weights_identical": same_keys and max_diff == 0.0,
+        "weights_max_abs_diff": max_diff if same_keys else None,
+    }
+
+
+# ---- the chaos run --------------------------------------------------------------------------------
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process with a reused PID: not ours
+        return False
+    return True
+
+
+class ChaosRun:
+    """``covers-dist train`` in a child process, killed and resumed as the schedule says."""
+
+    def __init__(self, cfg_path: str, overrides: list[str], run_dir: Path, log: Callable[[str], None]) -> None:
+        self.run_dir = run_dir
+        self.log = log
+        sets = [x for o in overrides for x in ("--set", o)]
+        self.first = ["train", "--config", cfg_path, *sets, "--run-dir", str(run_dir)]
+        self.kills: Counter[str] = Counter()
+        self.output = open(run_dir.parent / f"{run_dir.name}-driver.log", "a")
+        self.proc: subprocess.Popen | None = None
+        self.started = 0.0
+
+    def _start(self, args: list[str]) -> None:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.started = time.time()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "covers_dist", *args], stdout=self.output, stderr=subprocess.STDOUT, env=env
+        )
+
+    def _records(self) -> list[dict[str, Any]]:
+        from ..runtime.processes import list_processes
+
+        return list_processes(self.run_dir)
+
+    def _victims(self, kinds: set[str]) -> dict[str, list[dict[str, Any]]]:
+        """Live processes of the current driver's run, by kind."""
+        out: dict[str, list[dict[str, Any]]] = {}
+        for rec in self._records():
+            if rec["role"] in kinds and rec["started"] >= self.started and _alive(int(rec["pid"])):
+                out.setdefault(rec["role"], []).append(rec)
+        return out
+
+    def _driver_ready(self) -> bool:
+        return any(r["role"] == "driver" and r["pid"] == self.proc.pid for r in self._records())
+
+    def _result(self) -> dict[str, Any]:
+        """The JSON line ``covers-dist train`` prints last."""
+        text = (self.run_dir.parent / f"{self.run_dir.name}-driver.log").read_text().splitlines()
+        for line in reversed(text):
+            if line.startswith("{") and '"status"' in line:
+                return json.loads(line)
+        return {}
+
+    def _check_exit(self, what: str) -> None:
+        assert self.proc is not None
+        if self.proc.returncode != 0:
+            tail = "\n".join((self.run_dir.parent / f"{self.run_dir.name}-driver.log").read_text().splitlines()[-30:])
+            raise RuntimeError(f"the driver exited with {self.proc.returncode} after {what}; its output:\n{tail}")
+
+    def run(self, rng: random.Random, interval: tuple[float, float], kinds: set[str], max_kills: int) -> float:
+        t0 = time.monotonic()
+        self._start(self.first)
+        while True:
+            assert self.proc is not None
+            while not self._driver_ready() and self.proc.poll() is None:
+                time.sleep(0.1)
+            try:
+                self.proc.wait(rng.uniform(*interval))
+            except subprocess.TimeoutExpired:
+                pass
+            if self.proc.poll() is not None:
+                self._check_exit("running")
+                if self._result().get("status") == "finished":
+                    break
+                self._start(["train", "--resume", str(self.run_dir)])  # stopped by a signal before we knew
+                continue
+            if max_kills and sum(self.kills.values()) >= max_kills:
+                continue
+            victims = self._victims(kinds)
+            if not victims:
+                continue
+            kind = rng.choice(sorted(victims))
+            rec = rng.choice(sorted(victims[kind], key=lambda r: r["pid"]))
+            self._kill(kind, rec)
+        self.output.close()
+        return time.monotonic() - t0
+
+    def _kill(self, kind: str, rec: dict[str, Any]) -> None:
+        assert self.proc is not None
+        name = kind if rec.get("index") is None else f"{kind}-{rec['index']}"
+        if kind == "driver":
+            os.kill(rec["pid"], signal.SIGTERM)
+            self.proc.wait(600)
+            self._check_exit("SIGTERM")
+            status = self._result().get("status")
+            self.kills[kind] += 1
+            self.log(f"kill {sum(self.kills.values()):3d}: driver (SIGTERM, exit {status}); resuming")
+            if status != "finished":
+                self._start(["train", "--resume", str(self.run_dir)])
+            return
+        try:
+            os.kill(rec["pid"], signal.SIGKILL)
+        except ProcessLookupError:
+            return
+        self.kills[kind] += 1
+        self.log(f"kill {sum(self.kills.values()):3d}: {name} (pid {rec['pid']}, SIGKILL)")
+
+
+# ---- node loss ------------------------------------------------------------------------------------
+def node_loss_run(cfg: Config, lose: str, lose_after: int, log: Callable[[str], None]) -> dict[str, Any]:
+    """The run on a 2-node loopback cluster whose node holding the ``lose`` actors is removed mid-run.
+
+    Placement is forced with placeholder actors that hold every free CPU of a node while the run's
+    actors are placed: the rollout workers (``workers``) or the learners (``learners``, which then
+    reserve one CPU each) land on the second node. Before that node is removed, the head's
+    placeholders go, so the surviving head has room for everything that restarts.
+    """
+    import dataclasses
+
+    import ray
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    from ..runtime.driver import Trainer
+    from ..runtime.local_cluster import LocalCluster
+    from ..runtime.processes import list_processes
+
+    workers = cfg.runtime.num_workers
+    learner_cpus = 1 if lose == "learners" else 0
+    room = 4  # learners the head can take when the second node is gone
+    cfg = dataclasses.replace(cfg, runtime=dataclasses.replace(cfg.runtime, learner_num_cpus=learner_cpus))
+
+    @ray.remote(num_cpus=0)
+    class Placeholder:
+        def ready(self) -> bool:
+            return True
+
+    def hold(node_id: str, cpus: int) -> Any:
+        strategy = NodeAffinitySchedulingStrategy(node_id, soft=False)
+        actor = Placeholder.options(num_cpus=cpus, scheduling_strategy=strategy).remote()
+        ray.get(actor.ready.remote())
+        return actor
+
+    head_cpus = workers + room
+    with LocalCluster(head_cpus) as cluster:
+        node = cluster.add_node(workers if lose == "workers" else room)
+        cfg = dataclasses.replace(cfg, runtime=dataclasses.replace(cfg.runtime, ray_address=cluster.address))
+        ray.init(address=cluster.address, log_to_driver=False)
+        head_id, other_id = cluster.head.node_id, node.node_id
+        if lose == "workers":
+            holders = [hold(head_id, head_cpus)]  # the workers go to the other node
+        else:
+            holders = [hold(other_id, room), hold(head_id, room)]  # workers on the head
+        trainer = Trainer(cfg, log=lambda *_: None)
+        ray.get([w.pid.remote() for w in trainer.backend.workers])
+        if lose == "learners":
+            ray.kill(holders.pop(0))  # the other node is now free for the learners only
+        removed = threading.Event()
+        before: dict[str, str] = {}
+
+        def lose_node() -> None:
+            while trainer.iteration < lose_after:
+                time.sleep(0.05)
+            before.update({_name(r): r.get("node", "") for r in list_processes(cfg.runtime.run_dir)})
+            for h in holders:
+                ray.kill(h)
+            cluster.remove_node(node)
+            removed.set()
+            log(f"removed the node holding the {lose} after iteration {lose_after}")
+
+        killer = threading.Thread(target=lose_node, daemon=True)
+        killer.start()
+        t0 = time.monotonic()
+        try:
+            trainer.run()
+        finally:
+            trainer.close()
+        killer.join(5)
+        after = {_name(r): r.get("node", "") for r in list_processes(cfg.runtime.run_dir)}
+        return {
+            "lost": lose,
+            "node_removed": removed.is_set(),
+            "on_lost_node": sorted(n for n, where in before.items() if where == other_id),
+            "moved_to_head": sorted(n for n, where in after.items() if before.get(n) == other_id and where == head_id),
+            "wall_s": round(time.monotonic() - t0, 1),
+        }
+
+
+def _name(rec: dict[str, Any]) -> str:
+    return rec["role"] if rec.get("index") is None else f"{rec['role']}-{rec['index']}"
+
+
+# ---- the command ----------------------------------------------------------------------------------
+def _interval(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError:
+        raise SystemExit(f"covers-dist bench chaos: --interval must be MIN,MAX seconds, got {text!r}") from None
+    if not 0 < lo <= hi:
+        raise SystemExit(f"covers-dist bench chaos: --interval needs 0 < MIN <= MAX, got {text!r}")
+    return lo, hi
+
+
+def run(args: argparse.Namespace) -> int:
+    interval = _interval(args.interval)
+    kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
+    if not kinds or kinds - set(KINDS):
+        raise SystemExit(f"covers-dist bench chaos: --kinds must name some of {', '.join(KINDS)}, got {args.kinds!r}")
+    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="covers-chaos-"))
+    out.mkdir(parents=True, exist_ok=True)
+    log = (lambda m: print(m, file=sys.stderr, flush=True)) if args.json else (lambda m: print(m, flush=True))
+    base = load_config(args.config, args.overrides)  # validates the config before anything runs
+    serial = [*args.overrides, "runtime.serial=true", f"runtime.run_dir={out / 'clean'}", "api.enabled=false"]
+    log(f"clean run ({base.runtime.total_env_steps} env steps, serial) in {out / 'clean'}")
+    quiet = contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext()
+    with quiet:  # progress lines of the runs in this process: not on stdout when it carries JSON
+        clean_s = clean_run(load_config(args.config, serial))
+    report: dict[str, Any] = {"config": args.config, "seed": base.seed, "clean_wall_s": round(clean_s, 1)}
+    chaos_dir = out / ("node-loss" if args.node_loss else "chaos")
+    if args.node_loss:
+        cfg = load_config(args.config, [*args.overrides, "runtime.serial=false", f"runtime.run_dir={chaos_dir}"])
+        with quiet:
+            report["node_loss"] = node_loss_run(cfg, args.node_loss, args.lose_after, log)
+    else:
+        chaos = [*args.overrides, "runtime.serial=false", "api.enabled=true", "api.port=0"]
+        runner = ChaosRun(args.config, chaos, chaos_dir, log)
+        log(f"chaos run in {chaos_dir}: a kill every {interval[0]:g}-{interval[1]:g} s among {sorted(kinds)}")
+        report["chaos_wall_s"] = round(runner.run(random.Random(args.seed), interval, kinds, args.max_kills), 1)
+        report["kills"] = dict(sorted(runner.kills.items()))
+        report["kills_total"] = sum(runner.kills.values())
+    report["comparison"] = compare(final_state(out / "clean"), final_state(chaos_dir))
+    report["out"] = str(out) if args.out else None
+    c = report["comparison"]
+    ok = c["assignments_identical"] and c["weights_identical"] and c["assigned_exactly_once"] and c["logged_exactly_once"]
+    report["equal_to_clean"] = ok
+    if "kills_total" in report:
+        report["target_kills"] = TARGET_KILLS
+    if args.json:
+        print(json.dumps(report))
+    else:
+        _print(report)
+    if not args.out:
+        import shutil
+
+        shutil.rmtree(out, ignore_errors=True)
+    return 0 if ok else 1
+
+
+def _print(r: dict[str, Any]) -> None:
+    c = r["comparison"]
+    print(f"clean run: {r['clean_wall_s']} s (serial)")
+    if "kills" in r:
+        kinds = ", ".join(f"{k} {v}" for k, v in r["kills"].items())
+        print(f"chaos run: {r['chaos_wall_s']} s, {r['kills_total']} kills ({kinds}); target >= {TARGET_KILLS}")
+    if "node_loss" in r:
+        n = r["node_loss"]
+        print(f"node loss ({n['lost']}): removed={n['node_removed']} on the lost node: {n['on_lost_node']} "
+              f"restarted on the head: {n['moved_to_head']} ({n['wall_s']} s)")  # fmt: skip
+    print(
+        f"{c['batches']} batches: assignments identical {c['assignments_identical']}, every episode assigned once "
+        f"{c['assigned_exactly_once']}, logged once {c['logged_exactly_once']} (doubles {c['logged_doubles']}, "
+        f"missing {c['logged_missing']}), weights identical {c['weights_identical']} (max |diff| "
+        f"{c['weights_max_abs_diff']}) for policies {c['policies']}"
+    )
+    print("EQUAL to the clean run" if r["equal_to_clean"] else "DIFFERENT from the clean run")
