@@ -4,6 +4,11 @@ Subcommands are discovered: every module in :mod:`covers_dist.commands` that def
 ``register(subparsers)`` adds one subcommand, and every module in :mod:`covers_dist.bench`
 that defines ``register(subparsers)`` adds one ``covers-dist bench <name>`` benchmark. A
 registered parser sets ``func`` (called with the parsed args; returns an exit code).
+
+:func:`main` needs no environment variable: before any subcommand is imported it sets
+``MUJOCO_GL`` (and ``PYOPENGL_PLATFORM``) to an installed GL backend unless they are set, and
+every path that starts a local Ray instance makes it loopback-only itself
+(:func:`covers_dist.runtime.ray_setup.loopback_only`).
 """
 
 from __future__ import annotations
@@ -48,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from .envs.gl_render import default_gl_environment
+
+    default_gl_environment()  # before any subcommand module can import mujoco
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

@@ -230,7 +230,30 @@ class RuntimeConfig:
     learner_threads: int = _f(
         2, "torch intra-op threads per learner (updates run while the workers wait, so they may use the cores).", min=1
     )
+    actor_nice: int = _f(
+        0,
+        "Niceness added to rollout worker and learner processes on Ray, so the HTTP service, the driver "
+        "and the clustering actor get the CPU first when training saturates it (0..19; 0: equal priority).",
+        min=0,
+        max=19,
+    )
     log_every_s: float = _f(5.0, "Seconds between console progress lines.", gt=0.0)
+    log_rotate_mb: float | None = _f(
+        64.0,
+        "Size in MiB at which metrics.jsonl and episodes.jsonl are rotated into gzip segments "
+        "(NAME.<seq>.gz) and a TensorBoard event file is closed for a new one (null: never rotate).",
+    )
+    log_keep: int = _f(
+        5,
+        "Rotated segments kept per JSONL log (the oldest are deleted; 0: none), and closed TensorBoard "
+        "event files kept (more while together they hold no more than log_keep x log_rotate_mb).",
+        min=0,
+    )
+
+    def __post_init__(self) -> None:
+        mb = self.log_rotate_mb
+        if mb is not None and (isinstance(mb, bool) or not isinstance(mb, (int, float)) or not mb > 0):
+            raise ConfigError(f"runtime.log_rotate_mb={mb!r} must be > 0 (null: never rotate)")
 
 
 @dataclass(frozen=True)

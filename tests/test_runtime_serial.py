@@ -97,3 +97,19 @@ def test_corrupt_newest_checkpoint_falls_back_to_previous(tmp_path):
 def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no valid checkpoint"):
         Trainer(tiny_cfg(tmp_path), resume=True)
+
+
+def test_resume_after_a_kill_past_the_last_checkpoint_logs_each_iteration_once(tmp_path):
+    """A run killed after its last checkpoint redoes the later iterations: their rows are not doubled."""
+    cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=1600", "runtime.checkpoint_every=3")
+    trainer = Trainer(cfg, log=lambda *_: None)
+    trainer.run()
+    trainer.close()
+    shutil.rmtree(list_checkpoints(tmp_path)[-1])  # as if killed (SIGKILL) before the final checkpoint
+    resumed = Trainer(cfg, resume=True, log=lambda *_: None)
+    resumed.run()
+    resumed.close()
+    rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3, 4]
+    episodes = [json.loads(line)["episode_index"] for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
+    assert episodes == list(range(32))

@@ -81,6 +81,7 @@ def final_state(run_dir: Path) -> dict[str, Any]:
 
     from ..runtime.checkpoint import latest_valid_checkpoint
     from ..runtime.clustering_service import ClusteringService
+    from ..runtime.logfiles import read_jsonl_segments
 
     ckpt = latest_valid_checkpoint(run_dir, log=lambda *_: None)
     if ckpt is None:
@@ -93,7 +94,7 @@ def final_state(run_dir: Path) -> dict[str, Any]:
         int(f.stem.split("-")[1]): torch.load(f, weights_only=False)["ppo"]["model"]
         for f in sorted((ckpt / "learners").glob("policy-*.pt"))
     }
-    logged = [json.loads(line)["episode_index"] for line in (run_dir / "episodes.jsonl").read_text().splitlines() if line]
+    logged = [int(r["episode_index"]) for r in read_jsonl_segments(run_dir, "episodes.jsonl")]
     return {
         "assignments": [(int(r["policy_id"]), r["decision"]) for r in records],
         "assigned_episodes": [int(e) for r in records for e in r["episode_indices"]],
@@ -130,13 +131,12 @@ def compare(clean: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
 
 # ---- the chaos run --------------------------------------------------------------------------------
 def _alive(pid: int) -> bool:
+    """A running process (not a zombie waiting for its parent to reap it)."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
         return False
-    except PermissionError:  # someone else's process with a reused PID: not ours
-        return False
-    return True
+    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
 
 
 class ChaosRun:

@@ -152,17 +152,13 @@ def _summary(cl: dict[str, Any]) -> str:
 
 
 def _episode_rows(run_dir: Path, episodes_done: int) -> list[dict[str, Any]]:
-    """Rows of episodes.jsonl before ``episodes_done`` (newest per index); [] if the file is missing."""
-    path = Path(run_dir) / "episodes.jsonl"
-    if not path.is_file():
-        return []
+    """Rows of episodes.jsonl and its rotated segments before ``episodes_done`` (newest per index);
+    [] if there are none."""
+    from ..runtime.logfiles import read_jsonl_segments
+
     rows: dict[int, dict[str, Any]] = {}
-    for line in path.read_text().splitlines():
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(row, dict) and int(row.get("episode_index", -1)) in range(episodes_done):
+    for row in read_jsonl_segments(run_dir, "episodes.jsonl", strict=False):
+        if int(row.get("episode_index", -1)) in range(episodes_done):
             rows[int(row["episode_index"])] = row
     return [rows[i] for i in sorted(rows)]
 

@@ -16,7 +16,6 @@ and, when the run has evaluation passes (``eval.jsonl``):
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
@@ -30,18 +29,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _read_jsonl(path: Path) -> list[dict[str, Any]]:
-    if not path.is_file():
-        raise SystemExit(f"covers-dist plot: {path} is missing (is this a run directory?)")
-    rows = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError as e:
-            raise SystemExit(f"covers-dist plot: {path}:{n} is not valid JSON ({e})") from None
-    return rows
+def _read_jsonl(run: Path, name: str) -> list[dict[str, Any]]:
+    """Rows of log ``name`` of the run: its rotated segments, then the live file."""
+    from ..runtime.logfiles import read_jsonl_segments, segment_paths
+
+    if not (run / name).is_file() and not segment_paths(run, name):
+        raise SystemExit(f"covers-dist plot: {run / name} is missing (is this a run directory?)")
+    try:
+        return list(read_jsonl_segments(run, name))
+    except ValueError as e:
+        raise SystemExit(f"covers-dist plot: {e}") from None
 
 
 def _dedupe(rows: list[dict[str, Any]], key: str) -> list[dict[str, Any]]:
@@ -68,8 +65,8 @@ def make_plots(run_dir: str | Path, window: int = 10) -> list[Path]:
     import matplotlib.pyplot as plt
 
     run = Path(run_dir)
-    episodes = _dedupe(_read_jsonl(run / "episodes.jsonl"), "episode_index")
-    metrics = _dedupe(_read_jsonl(run / "metrics.jsonl"), "iteration")
+    episodes = _dedupe(_read_jsonl(run, "episodes.jsonl"), "episode_index")
+    metrics = _dedupe(_read_jsonl(run, "metrics.jsonl"), "iteration")
     if not episodes or not metrics:
         raise SystemExit(f"covers-dist plot: {run} has no episodes yet")
     # env steps at the end of every episode (episodes of one iteration share a logged step count)

@@ -4,7 +4,8 @@ MuJoCo picks its OpenGL platform from ``MUJOCO_GL`` when it is imported: ``egl``
 software rendering on a CPU machine, the GPU on a GPU machine) or ``osmesa`` (software OSMesa).
 :func:`select_gl_backend` chooses one that works, probing each candidate in a short-lived
 subprocess (a failed GL start-up can leave a process unusable), and raises a clear
-``RuntimeError`` naming what failed when none does.
+``RuntimeError`` naming what failed when none does. :func:`default_gl_environment` sets
+``MUJOCO_GL`` for a command-line process before anything imports mujoco.
 
 Every renderer here owns one ``mujoco.Renderer`` (one GL context) and makes it current before
 each frame; ``close()`` frees it. That avoids the black-frame bug, where freeing an old context
@@ -17,6 +18,7 @@ import copy
 import os
 import subprocess
 import sys
+from collections.abc import MutableMapping
 from typing import Any
 
 import numpy as np
@@ -26,6 +28,7 @@ from .topdown_view import TABLE_COLOR, TopDownView, draw_disc
 
 __all__ = [
     "GL_BACKENDS",
+    "default_gl_environment",
     "probe_gl_backend",
     "select_gl_backend",
     "GLTopDownRenderer",
@@ -40,6 +43,31 @@ _PROBE = (
     "r.update_scene(d); img = r.render(); r.close()\n"
     "assert img.shape == (8, 8, 3)\n"
 )
+
+
+_GL_LIBRARIES = {"egl": "EGL", "osmesa": "OSMesa"}
+
+
+def default_gl_environment(environ: MutableMapping[str, str] | None = None) -> str | None:
+    """Set ``MUJOCO_GL`` (and ``PYOPENGL_PLATFORM`` to match) unless set; returns ``MUJOCO_GL``.
+
+    The default is the first of egl, osmesa whose library is installed (none: left unset). A
+    value set by the user is kept. Does nothing once mujoco is imported (it has read the variable).
+    """
+    env = os.environ if environ is None else environ
+    if "mujoco" in sys.modules:
+        return env.get("MUJOCO_GL")
+    if "MUJOCO_GL" not in env:
+        import ctypes.util
+
+        found = next((name for name, lib in _GL_LIBRARIES.items() if ctypes.util.find_library(lib)), None)
+        if found is None:
+            return None
+        env["MUJOCO_GL"] = found
+    backend = env["MUJOCO_GL"]
+    if backend in GL_BACKENDS:
+        env.setdefault("PYOPENGL_PLATFORM", backend)
+    return backend
 
 
 def probe_gl_backend(name: str, timeout_s: float = 60.0) -> str | None:

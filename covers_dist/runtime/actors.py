@@ -37,8 +37,17 @@ def _announce(run_dir: str | None, role: str, index: int | None = None) -> None:
     announce(run_dir, role, index, node=ray.get_runtime_context().get_node_id())
 
 
+def _lower_priority(cfg: Config) -> None:
+    """Training's bulk work yields the CPU to the latency-bound processes (``runtime.actor_nice``)."""
+    import os
+
+    if cfg.runtime.actor_nice > 0 and os.getpriority(os.PRIO_PROCESS, 0) < cfg.runtime.actor_nice:
+        os.setpriority(os.PRIO_PROCESS, 0, cfg.runtime.actor_nice)
+
+
 class _RolloutHost(RolloutWorker):
     def __init__(self, cfg: Config, worker_index: int = 0, run_dir: str | None = None) -> None:
+        _lower_priority(cfg)
         super().__init__(cfg, worker_index)
         _announce(run_dir, "eval" if worker_index >= EVAL_WORKER_INDEX else "worker", worker_index)
 
@@ -55,6 +64,7 @@ class _RolloutHost(RolloutWorker):
 
 class _LearnerHost(PolicyLearner):
     def __init__(self, cfg: Config, policy_id: int, device: str | None = None, run_dir: str | None = None) -> None:
+        _lower_priority(cfg)
         super().__init__(cfg, policy_id, device, run_dir)
         _announce(run_dir, "learner", policy_id)
 

@@ -36,6 +36,7 @@ from .checkpoint import latest_valid_checkpoint, write_checkpoint
 from .clustering_service import LIVE_DIR as CLUSTERING_LIVE_DIR
 from .evaluation import PeriodicEvaluation, evaluation_pass
 from .learner import LIVE_DIR, live_state_path
+from .logfiles import remove_log
 from .metrics import M, MetricsWriter, Progress
 from .processes import announce
 from .ray_setup import resolve_weights
@@ -351,13 +352,17 @@ class Trainer:
 
     def run(self) -> dict[str, Any]:
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        writer = MetricsWriter(self.run_dir)
-        announce(self.run_dir, "driver")
+        resumed_at = None
+        if self._resume_from is not None:  # rows of iterations after the checkpoint are redone: drop them
+            resumed_at = int(json.loads((self._resume_from / "driver.json").read_text())["iteration"])
+        rt = self.cfg.runtime
+        writer = MetricsWriter(self.run_dir, resume_iteration=resumed_at, rotate_mb=rt.log_rotate_mb, keep=rt.log_keep)
         try:
             if self._resume_from is not None:
                 self._restore(self._resume_from)
             else:
                 self._new_policy(0)
+            announce(self.run_dir, "driver")  # recorded once the loop runs
             progress = Progress(self.cfg.runtime.total_env_steps, self.cfg.runtime.log_every_s, self.env_steps)
             self._t_start, self._steps_at_start = time.monotonic(), self.env_steps
             row: dict[str, Any] = {}
@@ -492,7 +497,7 @@ def train(
         for name in ("checkpoints", CLUSTERING_LIVE_DIR, LIVE_DIR, "tb"):
             shutil.rmtree(run_dir / name, ignore_errors=True)
         for name in ("metrics.jsonl", "episodes.jsonl", "eval.jsonl"):
-            (run_dir / name).unlink(missing_ok=True)
+            remove_log(run_dir, name)  # with its rotated segments
     started = False
     if not cfg.runtime.serial:
         from .ray_setup import init_ray, shutdown_ray

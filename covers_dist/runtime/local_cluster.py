@@ -9,7 +9,6 @@ ends exactly the processes it started.
 
 from __future__ import annotations
 
-import tempfile
 from typing import Any
 
 __all__ = ["LocalCluster"]
@@ -19,14 +18,14 @@ class LocalCluster:
     """``LocalCluster(head_cpus)``; ``add_node(num_cpus)``; ``remove_node(node)``; ``shutdown()``."""
 
     def __init__(self, head_cpus: int, head_resources: dict[str, float] | None = None) -> None:
-        from .ray_setup import loopback_only
+        from .ray_setup import loopback_only, ray_temp_dir
 
         loopback_only()  # every node binds and talks on 127.0.0.1
         import ray._common.utils as common_utils
         import ray._private.utils as private_utils
         from ray.cluster_utils import Cluster
 
-        self.temp_dir = tempfile.mkdtemp(prefix="covers-cluster-")
+        self.temp_dir = ray_temp_dir()
         # cluster_utils records (and at shutdown deletes) "the current cluster" in Ray's machine-wide
         # default temp dir, where any other ray.init() on the machine would find it: keep it in ours
         self._write, self._reset = private_utils.write_ray_address, common_utils.reset_ray_address

@@ -12,7 +12,7 @@ import os
 import tempfile
 from typing import Any
 
-__all__ = ["init_ray", "loopback_only", "shutdown_ray", "resolve_weights"]
+__all__ = ["init_ray", "loopback_only", "ray_temp_dir", "shutdown_ray", "resolve_weights"]
 
 _STARTED_HERE = False
 
@@ -31,7 +31,7 @@ def init_ray(num_cpus: int, address: str | None = None, num_gpus: float | None =
         return ray
     # only for an instance we start ourselves: a cluster's nodes must advertise their real address
     loopback_only()
-    tmp = tempfile.mkdtemp(prefix="covers-ray-")
+    tmp = ray_temp_dir()
     ray.init(
         num_cpus=num_cpus,
         num_gpus=num_gpus,
@@ -43,6 +43,21 @@ def init_ray(num_cpus: int, address: str | None = None, num_gpus: float | None =
     )
     _STARTED_HERE = True
     return ray
+
+
+#: Longest temp dir Ray's socket paths fit under (AF_UNIX: 107 bytes, of which Ray's session
+#: directory and socket names take about 64).
+_MAX_TEMP_DIR = 40
+
+
+def ray_temp_dir() -> str:
+    """A fresh temp dir for a local instance; under /tmp when ``TMPDIR`` is too long for Ray's
+    socket paths."""
+    tmp = tempfile.mkdtemp(prefix="covers-ray-")
+    if len(tmp) > _MAX_TEMP_DIR and os.path.isdir("/tmp"):
+        os.rmdir(tmp)
+        tmp = tempfile.mkdtemp(prefix="covers-ray-", dir="/tmp")
+    return tmp
 
 
 def loopback_only() -> None:
