@@ -67,7 +67,7 @@ def test_short_chaos_run_equals_the_clean_run():
 
 @pytest.mark.slow
 def test_chaos_run_with_twenty_kills_equals_the_clean_run():
-    report, _ = _chaos("--seed", "0", *_sets("runtime.total_env_steps=8000"), timeout=3000)
+    report, _ = _chaos("--seed", "0", "--max-kills", "24", *_sets("runtime.total_env_steps=8000"), timeout=3000)
     _assert_equal_to_clean(report)
     assert report["kills_total"] >= TARGET_KILLS
     assert set(report["kills"]) == set(KINDS)

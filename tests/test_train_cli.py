@@ -57,6 +57,22 @@ def test_sigterm_checkpoints_and_resume_continues(tmp_path):
     assert [e["episode_index"] for e in episodes] == list(range(80))
 
 
+def test_sigterm_during_start_up_stops_gracefully_before_the_first_iteration(tmp_path):
+    run = tmp_path / "run"
+    cmd = [EXE, "train", "--config", "configs/smoke.yaml", "--serial", "--run-dir", str(run), *SMALL,
+           "--set", "runtime.total_env_steps=4000"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.time() + 120
+    while not (run / "config.yaml").is_file():  # the run has started: its Trainer exists, no iteration yet
+        assert proc.poll() is None and time.time() < deadline, proc.stdout.read() if proc.poll() is not None else ""
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=240)
+    assert proc.returncode == 0, out  # not killed by the signal
+    assert "interrupted" in out
+    assert len(_lines(run / "metrics.jsonl")) <= 1
+
+
 def test_bad_config_is_a_clear_error(tmp_path):
     res = subprocess.run([EXE, "train", "--set", "ppo.epochs=-1"], cwd=ROOT, env=_env(), capture_output=True, text=True)
     assert res.returncode == 2 and "ppo.epochs=-1 must be >= 1" in res.stderr

@@ -498,23 +498,33 @@ def train(
             shutil.rmtree(run_dir / name, ignore_errors=True)
         for name in ("metrics.jsonl", "episodes.jsonl", "eval.jsonl"):
             remove_log(run_dir, name)  # with its rotated segments
+    # SIGINT/SIGTERM at any moment, start-up and shut-down included, ends the run gracefully: before
+    # the loop it stops it before its first iteration, in the loop after the iteration in flight
+    # (Trainer.run's own handler), after it nothing is cut short
+    signals: list[int] = []
+    graceful = {s: signal.signal(s, lambda signum, _frame: signals.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
     started = False
-    if not cfg.runtime.serial:
-        from .ray_setup import init_ray, shutdown_ray
-
-        init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address, cfg.runtime.num_gpus or None)
-        started = True
-    trainer = Trainer(cfg, resume=resume_dir is not None, log=log)
-    service = None
+    trainer = service = None
     try:
+        if not cfg.runtime.serial:
+            from .ray_setup import init_ray, shutdown_ray
+
+            init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address, cfg.runtime.num_gpus or None)
+            started = True
+        trainer = Trainer(cfg, resume=resume_dir is not None, log=log)
         if services is not None:
             service = services(cfg, trainer.backend.clustering)
             if service is not None and callable(getattr(service, "check", None)):
                 trainer.on_iteration.append(service.check)
+        if signals:
+            trainer._on_signal(signals[0], None)
         return trainer.run()
     finally:
         if service is not None:
             service.stop()
-        trainer.close()
+        if trainer is not None:
+            trainer.close()
         if started:
             shutdown_ray()
+        for s, h in graceful.items():
+            signal.signal(s, h)
