@@ -27,7 +27,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import signal
+
     from ..runtime.driver import train
+
+    for sig in (signal.SIGINT, signal.SIGTERM):  # after the run has stopped, a signal has nothing left to stop
+        signal.signal(sig, lambda *_: None)
 
     if args.resume:
         if args.overrides:

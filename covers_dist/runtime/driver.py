@@ -501,8 +501,13 @@ def train(
     # SIGINT/SIGTERM at any moment, start-up and shut-down included, ends the run gracefully: before
     # the loop it stops it before its first iteration, in the loop after the iteration in flight
     # (Trainer.run's own handler), after it nothing is cut short
+    # (while Ray itself starts, its own handler ends the process: there is nothing to save yet)
     signals: list[int] = []
-    graceful = {s: signal.signal(s, lambda signum, _frame: signals.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def graceful() -> dict[int, Any]:
+        return {s: signal.signal(s, lambda signum, _frame: signals.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    original = graceful()
     started = False
     trainer = service = None
     try:
@@ -511,6 +516,7 @@ def train(
 
             init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address, cfg.runtime.num_gpus or None)
             started = True
+            graceful()  # ray.init replaced it with one that exits at once
         trainer = Trainer(cfg, resume=resume_dir is not None, log=log)
         if services is not None:
             service = services(cfg, trainer.backend.clustering)
@@ -526,5 +532,5 @@ def train(
             trainer.close()
         if started:
             shutdown_ray()
-        for s, h in graceful.items():
+        for s, h in original.items():
             signal.signal(s, h)
