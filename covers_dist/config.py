@@ -231,9 +231,9 @@ class RuntimeConfig:
         2, "torch intra-op threads per learner (updates run while the workers wait, so they may use the cores).", min=1
     )
     actor_nice: int = _f(
-        0,
-        "Niceness added to rollout worker and learner processes on Ray, so the HTTP service, the driver "
-        "and the clustering actor get the CPU first when training saturates it (0..19; 0: equal priority).",
+        10,
+        "Niceness of rollout worker and learner processes on Ray, so the HTTP service, the driver and the "
+        "clustering actor get the CPU first when training saturates it (0..19; 0: equal priority).",
         min=0,
         max=19,
     )

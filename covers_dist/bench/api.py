@@ -40,6 +40,8 @@ ASSIGNMENT, ACT, FLOOR = "GET /v1/assignment", "POST /v1/act", "GET /healthz"
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("api", help="HTTP service latency and req/s, idle and while training (and its cost to training)")
     p.add_argument("--config", default="configs/smoke.yaml", help="training config (default: configs/smoke.yaml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override, e.g. --set runtime.actor_nice=10 (repeatable)")
     p.add_argument("--window", type=float, default=20.0, help="seconds per measurement window (default: 20)")
     p.add_argument("--repeats", type=int, default=3, help="(no load, load) window pairs while training (default: 3)")
     p.add_argument("--rate", type=float, default=20.0, help="GET /v1/assignment requests/s (default: 20)")
@@ -187,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
     if args.window <= 0 or args.repeats < 1 or args.rate <= 0 or args.act_rate <= 0 or args.concurrency < 1:
         raise SystemExit("covers-dist bench api: --window, --rate, --act-rate > 0; --repeats, --concurrency >= 1")
     run_dir = tempfile.mkdtemp(prefix="covers-bench-api-")
-    overrides = ["name=bench-api", f"runtime.run_dir={run_dir}", "runtime.total_env_steps=100000000"]
+    overrides = [*args.overrides, "name=bench-api", f"runtime.run_dir={run_dir}", "runtime.total_env_steps=100000000"]
     cfg = load_config(args.config, overrides)
     cfg = dataclasses.replace(cfg, api=dataclasses.replace(cfg.api, port=0, token=None))
     obs, _ = make_task(cfg.env, cfg.env.tasks[0], "r", seed=0).reset(seed=0)
