@@ -1,0 +1,100 @@
+"""`covers-dist head`: the documented local `ray job submit` recipe, run as written, and the
+command's answers to bad input. Every head is stopped by its own command (its own PIDs)."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from covers_dist.commands.head import head_processes
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+def _env(state_dir):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    env["PATH"] = f"{BIN}:/usr/bin:/bin"
+    env["COVERS_HEAD_DIR"] = str(state_dir)
+    return env
+
+
+def recipe() -> str:
+    """The bash block after ``<!-- local-recipe -->`` in deploy/README.md."""
+    text = (ROOT / "deploy" / "README.md").read_text()
+    block = re.search(r"<!-- local-recipe -->\s*```bash\n(.*?)```", text, re.S)
+    assert block, "deploy/README.md has no local-recipe block"
+    return block.group(1)
+
+
+def _head(state_dir, *args):
+    return subprocess.run([str(BIN / "covers-dist"), "head", *args], env=_env(state_dir), capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+
+
+def _tiny_config(tmp_path):
+    cfg = yaml.safe_load((ROOT / "configs" / "smoke.yaml").read_text())
+    cfg["env"].update(episodes_per_task=8, max_episode_steps=20)
+    cfg["clustering"]["update_every"] = 8
+    cfg["ppo"].update(epochs=1, minibatch_size=80)
+    cfg["runtime"].update(total_env_steps=480, log_every_s=0.5)
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def test_the_documented_local_job_submit_recipe_works_as_written(tmp_path):
+    script = recipe()
+    run_dir = tmp_path / "job"
+    # only the config (a tiny stream) and the run directory change; every command stays as written
+    script = script.replace("configs/smoke.yaml", str(_tiny_config(tmp_path)))
+    script = script.replace('"$PWD/runs/smoke-job"', str(run_dir))
+    state = tmp_path / "state"
+    done = subprocess.run(["bash", "-e", "-c", script], cwd=ROOT, env=_env(state), capture_output=True, text=True,
+                          timeout=900)  # fmt: skip
+    temp = re.search(r"temp dir (\S+)", done.stdout)
+    try:
+        assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-4000:]
+        assert "succeeded" in done.stdout + done.stderr
+        assert "covers-dist head: running" in done.stdout and "stopped" in done.stdout
+        assert any((run_dir / "checkpoints").iterdir())  # the job trained and checkpointed
+        assert temp and head_processes(temp.group(1)) == []  # nothing of the head is left
+    finally:
+        if (state / "head.json").is_file():
+            _head(state, "stop")
+
+
+def test_head_refuses_bad_input_and_a_second_start(tmp_path):
+    state = tmp_path / "state"
+    assert _head(state, "status").returncode == 3
+    stop = _head(state, "stop")
+    assert stop.returncode == 3 and "nothing to stop" in stop.stderr
+    assert _head(state, "env").returncode == 3
+    bad = _head(state, "start", "--dashboard-port", "70000")
+    assert bad.returncode != 0 and "0..65535" in bad.stderr
+    started = _head(state, "start", "--port", "0", "--dashboard-port", "0", "--num-cpus", "1")
+    try:
+        assert started.returncode == 0, started.stdout + started.stderr
+        assert _head(state, "status").returncode == 0
+        again = _head(state, "start", "--port", "0", "--dashboard-port", "0")
+        assert again.returncode != 0 and "already running" in again.stderr
+        env = _head(state, "env").stdout
+        assert "RAY_AUTH_MODE=token" in env and "RAY_ADDRESS=http://127.0.0.1:" in env
+    finally:
+        stopped = _head(state, "stop")
+    assert stopped.returncode == 0, stopped.stderr
+    assert _head(state, "status").returncode == 3
+
+
+def test_a_port_in_use_is_named(tmp_path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        taken = _head(tmp_path / "state", "start", "--dashboard-port", str(port))
+    assert taken.returncode != 0 and f"port {port} (--dashboard-port) is in use" in taken.stderr
