@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..config import Config, load_config
+from ..runtime.processes import list_processes, running
 
 KINDS = ("worker", "learner", "clustering", "api", "driver")
 TARGET_KILLS = 20
@@ -130,15 +131,6 @@ def compare(clean: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
 
 
 # ---- the chaos run --------------------------------------------------------------------------------
-def _alive(pid: int) -> bool:
-    """A running process (not a zombie waiting for its parent to reap it)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
-
-
 class ChaosRun:
     """``covers-dist train`` in a child process, killed and resumed as the schedule says."""
 
@@ -160,15 +152,13 @@ class ChaosRun:
         )
 
     def _records(self) -> list[dict[str, Any]]:
-        from ..runtime.processes import list_processes
-
         return list_processes(self.run_dir)
 
     def _victims(self, kinds: set[str]) -> dict[str, list[dict[str, Any]]]:
         """Live processes of the current driver's run, by kind."""
         out: dict[str, list[dict[str, Any]]] = {}
         for rec in self._records():
-            if rec["role"] in kinds and rec["started"] >= self.started and _alive(int(rec["pid"])):
+            if rec["role"] in kinds and rec["started"] >= self.started and running(int(rec["pid"])):
                 out.setdefault(rec["role"], []).append(rec)
         return out
 
@@ -254,7 +244,6 @@ def node_loss_run(cfg: Config, lose: str, lose_after: int, log: Callable[[str], 
 
     from ..runtime.driver import Trainer
     from ..runtime.local_cluster import LocalCluster
-    from ..runtime.processes import list_processes
 
     workers = cfg.runtime.num_workers
     learner_cpus = 1 if lose == "learners" else 0

@@ -27,6 +27,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..runtime.processes import running
+
 DEFAULT_STATE_DIR = Path.home() / ".covers-dist" / "head"
 NOT_RUNNING = 3
 
@@ -55,14 +57,6 @@ def _cmdline(pid: int) -> str:
         return ""
 
 
-def _running(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
-
-
 def _parent(pid: int) -> int:
     try:
         return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
@@ -74,7 +68,7 @@ def head_processes(temp_dir: str) -> list[int]:
     """Live processes of the head: those whose command line names ``temp_dir`` (its own, and
     nobody else's) and their descendants (Ray workers retitle themselves, job drivers)."""
     own = os.getpid()
-    live = [int(e.name) for e in Path("/proc").iterdir() if e.name.isdigit() and _running(int(e.name))]
+    live = [int(e.name) for e in Path("/proc").iterdir() if e.name.isdigit() and running(int(e.name))]
     found = {p for p in live if p != own and temp_dir in _cmdline(p)}
     parents = {p: _parent(p) for p in live}
     grown = True
@@ -217,7 +211,7 @@ def stop_processes(state: dict[str, Any], grace_s: float) -> list[int]:
                 except ProcessLookupError:
                     pass
         deadline = time.monotonic() + wait
-        while time.monotonic() < deadline and any(_running(p) for p in pids):
+        while time.monotonic() < deadline and any(running(p) for p in pids):
             time.sleep(0.2)
         pids = sorted(set(pids) | set(head_processes(state["temp_dir"])))  # children started meanwhile
     return pids

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["PROCESS_DIR", "announce", "list_processes"]
+__all__ = ["PROCESS_DIR", "announce", "list_processes", "running"]
 
 PROCESS_DIR = "processes"
 
@@ -46,3 +46,12 @@ def list_processes(run_dir: str | Path) -> list[dict[str, Any]]:
         except (OSError, json.JSONDecodeError):  # being replaced right now
             continue
     return out
+
+
+def running(pid: int) -> bool:
+    """A running process (not a zombie waiting for its parent to reap it)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
