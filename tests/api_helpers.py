@@ -50,7 +50,8 @@ def filled_service(cfg: Config, stream: list[tuple[str, str]], episodes: int = 4
             weights[pid] = (1, policy_weights(cfg, pid))
             service.sync_weights({pid: weights[pid]})
         summaries = [
-            {"policy_id": pid, "assigned_policy": pid, "success": float(i % 2), "return": 10.0 + i} for i in idx
+            {"episode_index": i, "policy_id": pid, "assigned_policy": pid, "success": float(i % 2), "return": 10.0 + i}
+            for i in idx
         ]
         service.record_episodes(summaries)
         next_episode += episodes
