@@ -3,6 +3,8 @@ TensorBoard event-file rotation and purge, and the config keys. No Ray."""
 
 import gzip
 import json
+import time
+from pathlib import Path
 
 import pytest
 
@@ -163,6 +165,7 @@ def test_truncation_keeps_rows_without_an_iteration_and_drops_an_unfinished_line
 
 
 def _scalars(tb_dir, tag):
+    """TensorBoard's own reading of a run directory (event files in name order, purges applied)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     acc = EventAccumulator(str(tb_dir))
@@ -170,10 +173,25 @@ def _scalars(tb_dir, tag):
     return [(e.step, e.value) for e in acc.Scalars(tag)]
 
 
+def _scalars_per_file(tb_dir, tag):
+    """Every event file read alone, oldest first. Files written within one second by one process
+    differ only in a counter that does not sort as text (9 < 10), so the test reads them by age."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out = []
+    for f in sorted(Path(tb_dir).glob("events.out.tfevents.*"), key=lambda p: p.stat().st_mtime_ns):
+        acc = EventAccumulator(str(f))
+        acc.Reload()
+        if tag in acc.Tags()["scalars"]:
+            out += [(e.step, e.value) for e in acc.Scalars(tag)]
+    return out
+
+
 def test_tensorboard_hides_the_redone_iterations_after_a_resume(tmp_path):
     writer = MetricsWriter(tmp_path, tensorboard=True, rotate_mb=None)
     _write_run(tmp_path, range(1, 9), writer)
     writer.close()
+    time.sleep(1.1)  # a resumed run is a later process: its event file's name sorts after the first one's
     writer = MetricsWriter(tmp_path, tensorboard=True, resume_iteration=5, rotate_mb=None)
     for it in (6, 7):
         writer.scalars({**_metrics_row(it), "loss": 2.0})
@@ -190,7 +208,7 @@ def test_tensorboard_event_files_rotate_within_their_budget(tmp_path):
     files = sorted((tmp_path / "tb").glob("events.out.tfevents.*"))
     assert len(files) == keep + 1
     assert sum(p.stat().st_size for p in files) <= (keep + 1) * (limit + 500)  # one row's events past the limit
-    steps = [s for s, _ in _scalars(tmp_path / "tb", "loss")]
+    steps = [s for s, _ in _scalars_per_file(tmp_path / "tb", "loss")]
     assert steps[-1] == 6_000 and steps == sorted(steps) and 20 < len(steps) < 60
     # files left by restarts are small: they stay while the closed files fit in keep * limit
     for _ in range(4):
