@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
             args.overrides.append(f"runtime.run_dir={args.run_dir}")
         result = train(config_from_args(args), overwrite=args.overwrite, services=_http_service)
     keys = ("status", "checkpoint", "ari", "num_policies", "policy_counts")
-    print(json.dumps({k: result.get(k) for k in keys}, default=str))
+    print(json.dumps({k: result.get(k) for k in keys}, default=str), flush=True)
     return 0
 
 
