@@ -138,6 +138,12 @@ class PPOConfig:
         "Meta-World: 0..10 per step, try 0.01).",
         gt=0.0,
     )
+    reward_norm: Literal["none", "return"] = _f(
+        "return",
+        "return: rewards (after reward_scale) are divided by a running standard deviation of the discounted "
+        "return, kept across updates in the learner's state, so value targets are O(1) on any reward scale "
+        "(docs/learning.md); none: rewards times reward_scale only.",
+    )
     precision: Literal["auto", "fp32", "bf16"] = _f(
         "auto",
         "Update arithmetic: bf16 autocast of the forward pass (fp32 weights, optimizer and loss) or fp32. "

@@ -14,7 +14,7 @@ from covers_dist.cli import main as cli_main
 from covers_dist.config import NetworkConfig, PPOConfig
 from covers_dist.envs.toy import ToyTask, toy_layout
 from covers_dist.models import build_actor_critic
-from covers_dist.ppo import PPOLearner, collect_episodes, compute_gae, normalize_advantages, ppo_loss
+from covers_dist.ppo import PPOLearner, ReturnNormalizer, collect_episodes, compute_gae, normalize_advantages, ppo_loss
 
 SMALL_NET = NetworkConfig(channels=[2, 2, 2, 2], hidden=4)
 LAYOUT = toy_layout(16)
@@ -224,6 +224,55 @@ def test_checkpoint_restores_model_optimizer_and_counters(kind):
     assert weights_equal(learner.model.get_weights(), clone.model.get_weights())
     with pytest.raises(ValueError, match="lacks keys"):
         clone.load_state_dict({"model": state["model"]})
+
+
+def test_return_normalizer_merges_to_the_statistics_of_all_discounted_returns():
+    rng = np.random.default_rng(0)
+    episodes = [rng.uniform(0, 10, size=n) for n in (5, 9, 3, 12, 7)]
+    norm = ReturnNormalizer(gamma=0.9)
+    norm.update(episodes[:2])
+    norm.update(episodes[2:])
+    returns = []
+    for r in episodes:  # G_t = r_t + gamma G_{t-1}, written out
+        returns += [sum(0.9 ** (t - k) * r[k] for k in range(t + 1)) for t in range(len(r))]
+    assert norm.count == len(returns)
+    assert norm.mean == pytest.approx(np.mean(returns)) and norm.var == pytest.approx(np.var(returns))
+    clone = ReturnNormalizer(gamma=0.9)
+    clone.load_state_dict(norm.state_dict())
+    assert clone.std == norm.std
+
+
+def test_return_normalisation_makes_the_update_independent_of_the_reward_scale():
+    """With reward_norm: return, rewards x1000 give the same update (Meta-World pays 0..10 a step,
+    the toy tasks about -0.5): the value targets no longer depend on the task's reward units."""
+    updated = []
+    for factor in (1.0, 1000.0):
+        model = make_model()
+        episodes = make_episodes(model)
+        for ep in episodes:
+            ep["reward"] = np.asarray(ep["reward"]) * factor
+        learner = PPOLearner(model, PPOConfig(epochs=2, minibatch_size=16, reward_norm="return"))
+        stats = learner.update(episodes)
+        assert stats["reward_divisor"] == pytest.approx(learner.return_norm.std / 0.1)  # after reward_scale 0.1
+        updated.append(model.get_weights())
+    for key in updated[0]:
+        torch.testing.assert_close(updated[0][key], updated[1][key], rtol=1e-4, atol=1e-5)
+    plain = PPOLearner(make_model(), PPOConfig(reward_norm="none"))
+    assert plain.return_norm is None and plain.update(make_episodes(plain.model))["reward_divisor"] == pytest.approx(10.0)
+
+
+def test_return_statistics_live_in_the_learner_state():
+    model = make_model()
+    learner = PPOLearner(model, PPOConfig(epochs=1, minibatch_size=48))
+    learner.update(make_episodes(model))
+    state = learner.state_dict()
+    assert state["return_norm"]["count"] == 48
+    clone = PPOLearner(make_model(seed=3), PPOConfig(epochs=1, minibatch_size=48))
+    clone.load_state_dict(state)
+    assert clone.return_norm.state_dict() == learner.return_norm.state_dict()
+    older = {k: v for k, v in state.items() if k != "return_norm"}  # saved before return normalisation
+    clone.load_state_dict(older)
+    assert clone.return_norm.count == 0
 
 
 def test_bad_episodes_fail_with_clear_errors():

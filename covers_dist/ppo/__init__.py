@@ -4,13 +4,14 @@ Nothing here imports Ray; the runtime hosts :class:`PPOLearner` in its learner a
 """
 
 from .gae import compute_gae
-from .learner import EPISODE_KEYS, STAT_KEYS, PPOLearner, episodes_to_batch
+from .learner import EPISODE_KEYS, STAT_KEYS, PPOLearner, ReturnNormalizer, episodes_to_batch
 from .loss import PPOLossTerms, normalize_advantages, ppo_loss
 from .rollout import collect_episodes, success_rate
 
 __all__ = [
     "compute_gae",
     "PPOLearner",
+    "ReturnNormalizer",
     "episodes_to_batch",
     "EPISODE_KEYS",
     "STAT_KEYS",

@@ -1,7 +1,8 @@
 """The PPO learner: episodes in, one PPO update of an actor-critic out (pure torch, no Ray).
 
 :meth:`PPOLearner.update` takes episodes in the format of docs/architecture.md, computes GAE per
-episode (:func:`covers_dist.ppo.gae.compute_gae`, on rewards times ``reward_scale``), then runs
+episode (:func:`covers_dist.ppo.gae.compute_gae`, on rewards times ``reward_scale``, divided with
+``reward_norm: return`` by the running standard deviation of the discounted return), then runs
 ``epochs`` passes of shuffled minibatches of the clipped objective
 (:func:`covers_dist.ppo.loss.ppo_loss`) with the behaviour log-probs and values stored in the data,
 gradient-norm clipping and Adam. With ``precision`` bf16 (``auto``: where the learner's device
@@ -31,14 +32,14 @@ from ..config import PPOConfig
 from .gae import compute_gae
 from .loss import normalize_advantages, ppo_loss
 
-__all__ = ["PPOLearner", "episodes_to_batch", "resolve_precision", "native_bf16_cpu", "EPISODE_KEYS", "STAT_KEYS"]
+__all__ = ["PPOLearner", "ReturnNormalizer", "episodes_to_batch", "resolve_precision", "native_bf16_cpu", "EPISODE_KEYS", "STAT_KEYS"]
 
 EPISODE_KEYS = ("image", "proprio", "action", "logprob", "value", "reward", "success", "terminated", "truncated")
 #: Keys of the dict returned by :meth:`PPOLearner.update`.
 STAT_KEYS = (
     "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "grad_norm",
     "skipped_steps", "optimizer_steps", "epochs_completed", "early_stopped", "lr", "num_samples",
-    "num_episodes", "episode_return_mean", "success_rate", "update_time_s", "samples_per_s", "update_count", "bf16",
+    "num_episodes", "episode_return_mean", "success_rate", "update_time_s", "samples_per_s", "update_count", "bf16", "reward_divisor",
 )  # fmt: skip
 
 
@@ -110,6 +111,57 @@ def episodes_to_batch(
     return {k: torch.from_numpy(np.ascontiguousarray(np.concatenate(v))) for k, v in parts.items()}
 
 
+class ReturnNormalizer:
+    """Running standard deviation of the discounted return, the divisor of ``reward_norm: return``.
+
+    Each episode's discounted return ``G_t = r_t + gamma * G_{t-1}`` (``G_{-1} = 0``) is computed
+    along the episode, as the environment pays it; the mean and variance of every ``G_t`` seen so
+    far are merged in (Chan et al.'s parallel update), and rewards are divided by
+    ``sqrt(var + eps)``. Dividing by the spread of the return (not of single rewards) keeps the
+    value targets near unit scale whatever the task's reward range, as the strong PPO
+    implementations do (Engstrom et al. 2020, "Implementation matters in deep RL").
+    """
+
+    def __init__(self, gamma: float, eps: float = 1e-8) -> None:
+        self.gamma = float(gamma)
+        self.eps = float(eps)
+        self.count = 0
+        self.mean = 0.0
+        self.var = 1.0
+
+    def update(self, episodes_rewards: Sequence[np.ndarray]) -> None:
+        """Merge the discounted returns of these episodes' steps into the running statistics."""
+        returns = []
+        for r in episodes_rewards:
+            g, out = 0.0, np.empty(len(r), np.float64)
+            for t, x in enumerate(np.asarray(r, np.float64)):
+                g = x + self.gamma * g
+                out[t] = g
+            returns.append(out)
+        x = np.concatenate(returns) if returns else np.empty(0)
+        x = x[np.isfinite(x)]  # a NaN/inf reward spoils its own update (skipped steps), not the statistics
+        if x.size == 0:
+            return
+        n, mean, var = x.size, float(x.mean()), float(x.var())
+        if self.count == 0:
+            self.count, self.mean, self.var = n, mean, var
+            return
+        total = self.count + n
+        delta = mean - self.mean
+        m2 = self.var * self.count + var * n + delta**2 * self.count * n / total
+        self.count, self.mean, self.var = total, self.mean + delta * n / total, m2 / total
+
+    @property
+    def std(self) -> float:
+        return math.sqrt(self.var + self.eps)
+
+    def state_dict(self) -> dict[str, float]:
+        return {"count": self.count, "mean": self.mean, "var": self.var}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.count, self.mean, self.var = int(state["count"]), float(state["mean"]), float(state["var"])
+
+
 def _explained_variance(values: torch.Tensor, returns: torch.Tensor) -> float:
     var = float(returns.var(unbiased=False))
     return float("nan") if var == 0.0 else 1.0 - float((returns - values).var(unbiased=False)) / var
@@ -134,6 +186,7 @@ class PPOLearner:
         device = next(model.parameters()).device
         self.precision = resolve_precision(ppo_cfg.precision, device)
         self._autocast_device = device.type
+        self.return_norm = ReturnNormalizer(ppo_cfg.gamma) if ppo_cfg.reward_norm == "return" else None
 
     def learning_rate(self) -> float:
         """The learning rate the next update will use."""
@@ -145,7 +198,11 @@ class PPOLearner:
         """One PPO update on ``episodes``; returns the statistics listed in :data:`STAT_KEYS`."""
         cfg = self.cfg
         start = time.perf_counter()
-        batch = episodes_to_batch(episodes, cfg.gamma, cfg.gae_lambda, cfg.reward_scale)
+        scale = cfg.reward_scale
+        if self.return_norm is not None:
+            self.return_norm.update([np.asarray(ep["reward"], np.float64) * cfg.reward_scale for ep in episodes])
+            scale = cfg.reward_scale / self.return_norm.std
+        batch = episodes_to_batch(episodes, cfg.gamma, cfg.gae_lambda, scale)
         n = batch["action"].shape[0]
         lr = self.learning_rate()
         for group in self.optimizer.param_groups:
@@ -215,6 +272,7 @@ class PPOLearner:
             samples_per_s=processed / elapsed if elapsed > 0 else float("nan"),
             update_count=self.update_count,
             bf16=self.precision == "bf16",
+            reward_divisor=1.0 / scale,  # raw rewards are divided by this before GAE
         )
         return stats
 
@@ -228,6 +286,7 @@ class PPOLearner:
             "skipped_total": self.skipped_total,
             "rng_state": self._rng.get_state(),
             "seed": self.seed,
+            "return_norm": None if self.return_norm is None else self.return_norm.state_dict(),
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -241,3 +300,9 @@ class PPOLearner:
         self.skipped_total = int(state["skipped_total"])
         self._rng.set_state(state["rng_state"])
         self.seed = int(state.get("seed", self.seed))
+        saved = state.get("return_norm")
+        if self.return_norm is not None:
+            if saved is None:  # a learner saved without return normalisation: its statistics start afresh
+                self.return_norm = ReturnNormalizer(self.cfg.gamma)
+            else:
+                self.return_norm.load_state_dict(saved)

@@ -1,0 +1,44 @@
+"""``covers-dist bench sweep``: the figures it reads from a run's metrics, and one real tiny sweep."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from covers_dist.bench.sweep import summarize, table
+
+
+def _rows(successes, steps_per_iteration=400, seconds_per_iteration=2.0):
+    return [
+        {"env_steps": (i + 1) * steps_per_iteration, "wall_time": 100.0 + i * seconds_per_iteration,
+         "success/reach": s, "num_policies": 1 if i < 3 else 2}
+        for i, s in enumerate(successes)
+    ]  # fmt: skip
+
+
+def test_summary_finds_the_first_window_at_0_9_and_the_fifths():
+    rows = _rows([0.0, 0.5, 1.0, 0.75, 1.0, 1.0, 0.0, 1.0, 1.0, 1.0])
+    s = summarize(rows, "reach", window=3)
+    # windows of 3: ..., (1.0, 0.75, 1.0) = 0.917 ends at the 5th iteration
+    assert s["steps_to_0.9"] == 2000 and s["wall_s_to_0.9"] == 8.0
+    assert s["fifths"] == [0.25, 0.875, 1.0, 0.5, 1.0] and s["final"] == 1.0
+    assert s["policies"] == 2 and s["iterations"] == 10
+    never = summarize(_rows([0.0] * 6), "reach")
+    assert never["steps_to_0.9"] is None and never["final"] == 0.0
+    assert summarize(rows, "push")["iterations"] == 0  # a task the run never saw
+    assert "| a | 0 |" in table({"task": "reach", "group": "D4", "steps": 4000, "config": "c",
+                                 "runs": [{"variant": "a", "seed": 0, "wall_s": 1.0, **s}]})  # fmt: skip
+
+
+def test_a_tiny_sweep_runs_each_variant_and_refuses_a_bad_one(tmp_path):
+    cmd = [sys.executable, "-m", "covers_dist", "bench", "sweep", "--config", "configs/smoke.yaml", "--task", "reach",
+           "--steps", "800", "--serial", "--json", "--out", str(tmp_path)]  # fmt: skip
+    done = subprocess.run([*cmd, "--variant", "", "--variant", "ppo.reward_norm=none"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert [r["variant"] for r in report["runs"]] == ["(as configured)", "ppo.reward_norm=none"]
+    assert all(r["iterations"] == 2 and 0.0 <= r["final"] <= 1.0 for r in report["runs"])
+    assert (tmp_path / "run-02" / "metrics.jsonl").is_file()
+    bad = subprocess.run([*cmd, "--variant", "ppo.reward_norm=sometimes"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "reward_norm" in bad.stderr
