@@ -19,11 +19,13 @@ def _rows(successes, steps_per_iteration=400, seconds_per_iteration=2.0):
 
 def test_summary_finds_the_first_window_at_0_9_and_the_fifths():
     rows = _rows([0.0, 0.5, 1.0, 0.75, 1.0, 1.0, 0.0, 1.0, 1.0, 1.0])
+    for i, row in enumerate(rows):
+        row["return/reach"] = float(i)
     s = summarize(rows, "reach", window=3)
     # windows of 3: ..., (1.0, 0.75, 1.0) = 0.917 ends at the 5th iteration
     assert s["steps_to_0.9"] == 2000 and s["wall_s_to_0.9"] == 8.0
     assert s["fifths"] == [0.25, 0.875, 1.0, 0.5, 1.0] and s["final"] == 1.0
-    assert s["policies"] == 2 and s["iterations"] == 10
+    assert s["policies"] == 2 and s["iterations"] == 10 and s["return_fifths"] == [0.5, 2.5, 4.5, 6.5, 8.5]
     never = summarize(_rows([0.0] * 6), "reach")
     assert never["steps_to_0.9"] is None and never["final"] == 0.0
     assert summarize(rows, "push")["iterations"] == 0  # a task the run never saw

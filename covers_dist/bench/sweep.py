@@ -6,7 +6,7 @@ given); each variant trains ``--steps`` env steps on a stream of the one ``--tas
 config's group (every episode a transformed copy ``g.T``, ``env.episodes_per_task=1`` so ``g``
 changes every episode), for each ``--seeds`` seed, one run after another, with the real loop
 (Ray, or ``--serial``). Reported per run, from its ``metrics.jsonl``: the mean training success
-by fifths of the run, the env steps and wall-clock seconds until the success of a window of
+(and return) by fifths of the run, the env steps and wall-clock seconds until the success of a window of
 ``--window`` iterations first reaches 0.9, the policies the bank made, and the run's wall-clock.
 
 Training success only: tune on these, report on evaluation episodes (``covers-dist bench learn``,
@@ -54,7 +54,9 @@ def summarize(rows: list[dict[str, Any]], task: str, window: int = 3) -> dict[st
     key = f"success/{task}"
     pts = [(r["env_steps"], r[key], r.get("wall_time")) for r in rows if key in r]
     if not pts:
-        return {"iterations": 0, "fifths": [], "final": None, "steps_to_0.9": None, "wall_s_to_0.9": None}
+        return {"iterations": 0, "fifths": [], "final": None, "return_fifths": [], "steps_to_0.9": None,
+                "wall_s_to_0.9": None}  # fmt: skip
+    returns = np.array([r.get(f"return/{task}", np.nan) for r in rows if key in r], float)
     steps = np.array([p[0] for p in pts], float)
     success = np.array([p[1] for p in pts], float)
     fifths = [float(np.mean(part)) for part in np.array_split(success, 5) if len(part)]
@@ -70,6 +72,7 @@ def summarize(rows: list[dict[str, Any]], task: str, window: int = 3) -> dict[st
         "iterations": len(pts),
         "fifths": [round(f, 3) for f in fifths],
         "final": round(fifths[-1], 3),
+        "return_fifths": [round(float(np.mean(part)), 1) for part in np.array_split(returns, 5) if len(part)],
         "steps_to_0.9": reached_steps,
         "wall_s_to_0.9": reached_wall,
         "policies": int(max(r.get("num_policies", 1) for r in rows)),
@@ -142,11 +145,12 @@ def table(report: dict[str, Any]) -> str:
     lines = [
         f"{report['task']} under {report['group']}, {report['steps']} env steps per run ({report['config']})",
         "",
-        "| variant | seed | success by fifths | final | steps to 0.9 | s to 0.9 | policies | wall s |",
-        "|---|---|---|---|---|---|---|---|",
+        "| variant | seed | success by fifths | final | return by fifths | steps to 0.9 | s to 0.9 | policies | wall s |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in report["runs"]:
         fifths = " ".join(f"{f:.2f}" for f in r["fifths"])
-        lines.append(f"| {r['variant']} | {r['seed']} | {fifths} | {r['final']} | {r['steps_to_0.9'] or '-'} | "
+        returns = " ".join(f"{f:.0f}" for f in r.get("return_fifths", []))
+        lines.append(f"| {r['variant']} | {r['seed']} | {fifths} | {r['final']} | {returns} | {r['steps_to_0.9'] or '-'} | "
                      f"{r['wall_s_to_0.9'] or '-'} | {r.get('policies', '-')} | {r['wall_s']} |")  # fmt: skip
     return "\n".join(lines)

@@ -1,0 +1,629 @@
+"""``covers-dist bench learn``: time and env steps until the greedy policy solves a task group.
+
+One task group is one base task (e.g. ``drawer-close-v3``) under every element of the config's
+symmetry group (D4: 8 transformed tasks). Each contender trains on a stream of that task alone,
+every episode under a group element, and is evaluated every ``--eval-every`` env steps with the
+clock paused; it stops once the greedy policy (the Gaussian's mean) succeeds on at least
+``--threshold`` of the evaluation episodes of *every* transform, or when its budget of env steps or
+training minutes is spent. Contenders run one after another, never at once:
+
+* ``covers``: covers-dist's own loop (:class:`covers_dist.runtime.driver.Trainer`) with the config as
+  given (the equivariant network), on Ray (``--serial``: in one process);
+* ``cnn``: the same loop with the CNN twin (``runtime.method=covers-cnn``, ``network.kind=cnn``);
+* ``rllib``: RLlib's PPO with its default CNN on the image alone
+  (:func:`covers_dist.bench.rllib_peer.build_rllib_ppo`), the same batch, epochs, minibatch,
+  learning rate, gamma, lambda and clip, each reset under a random element of the group.
+
+The covers-dist stream is ``env.tasks: [TASK]`` with ``env.episodes_per_task: 1`` and
+``env.held_out: 0``: every episode is a new segment, and the elements come in seeded shuffles of
+the group (each run of |G| episodes holds every element once; :class:`~covers_dist.envs.stream.TaskStream`).
+RLlib's env draws an element uniformly at each reset, seeded from the reset's seed.
+
+**Evaluation** (the same for all contenders, :class:`GreedyEvaluator`): ``--eval-episodes`` episodes
+on each element, reset with the seeds :func:`covers_dist.evaluation.protocol.eval_seed` gives
+(tagged apart from training seeds; the same on every element, for every contender and at every
+point), greedy actions; an episode succeeds when ``info["success"]`` was ever true (its maximum
+over the steps, as covers-dist's rollouts count it); a transform's success is the mean over its
+episodes. Before each evaluation the covers loop drains the update in flight (its time counts as
+training) and the policy's newest published weights are loaded into a fresh copy of the config's
+network. Each transform is evaluated with the policy the bank would choose from the evaluation
+episodes' first frames (``what_if``, the bank unchanged; when it would create a new policy, the
+nearest one), which is the only policy when the bank holds one. RLlib is evaluated with the
+local env runner's module (:meth:`Algorithm.get_module`, synced after every ``train()``):
+``forward_inference`` gives the Gaussian's ``[mean, log_std]``; the mean is unsquashed and clipped
+to the action space as RLlib's own connector does when it acts.
+
+**Clock**: ``train_wall_s`` counts the seconds spent in training calls (``Trainer.step`` and
+``drain``, ``Algorithm.train``), not the start-up (actors, learners, env runners; reported as
+``setup_s``) nor the evaluations (``eval_s``). ``--budget-minutes`` bounds that training clock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Callable, Mapping, NoReturn, Sequence
+
+import numpy as np
+
+PROG = "covers-dist bench learn"
+CONTENDERS: tuple[str, ...] = ("covers", "cnn", "rllib")
+#: Overrides that turn the config into each covers-dist contender.
+CONTENDER_OVERRIDES: dict[str, list[str]] = {
+    "covers": [],
+    "cnn": ["runtime.method=covers-cnn", "network.kind=cnn"],
+}
+#: Most environments an evaluation steps at once (Meta-World envs hold ~40 MB each).
+EVAL_WAVE = 8
+
+#: A greedy policy: a batch of observations (``image`` uint8 (B, S, S, 3), ``proprio`` (B, P)) ->
+#: the actions (B, A) to send to the envs.
+ActFn = Callable[[Mapping[str, np.ndarray]], np.ndarray]
+#: Picks the greedy policy of one element from the first frames of its evaluation episodes.
+Chooser = Callable[[str, Mapping[str, np.ndarray]], tuple[ActFn, Any]]
+
+__all__ = ["GreedyEvaluator", "CONTENDERS", "register", "run", "plot_curves", "ratios"]
+
+
+# ---- the command line --------------------------------------------------------------------------
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "learn",
+        help="time and env steps until the greedy policy solves every transform of one task group, vs RLlib",
+    )
+    p.add_argument("--config", default="configs/quickstart.yaml", help="config (default: configs/quickstart.yaml)")
+    p.add_argument("--task", default=None, help="base task of the group (default: the config's first task)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override for every contender (repeatable)")  # fmt: skip
+    p.add_argument("--seed", type=int, default=None, help="run seed (default: the config's)")
+    p.add_argument("--threshold", type=float, default=0.9,
+                   help="success needed on every transform, 0 < t <= 1 (default: 0.9)")  # fmt: skip
+    p.add_argument("--eval-every", type=int, default=4000, help="env steps between evaluations (default: 4000)")
+    p.add_argument("--eval-episodes", type=int, default=2, help="greedy episodes per transform (default: 2)")
+    p.add_argument("--budget-steps", type=int, default=200_000, help="env steps per contender (default: 200000)")
+    p.add_argument("--budget-minutes", type=float, default=45.0,
+                   help="training minutes per contender, evaluations excluded (default: 45)")  # fmt: skip
+    p.add_argument("--contenders", default=",".join(CONTENDERS),
+                   help="comma-separated subset of: " + ", ".join(CONTENDERS) + " (default: all)")  # fmt: skip
+    p.add_argument("--serial", action="store_true", help="covers-dist contenders in one process (runtime.serial)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on the last stdout line")
+    p.add_argument("--plot", default=None, metavar="PATH.png", help="draw the success curves there")
+    p.add_argument("--out", default=None, metavar="DIR", help="write result.json and curves.png there")
+    p.set_defaults(func=run)
+
+
+def _fail(message: str) -> NoReturn:
+    """A one-line usage error on stderr, exit status 2."""
+    print(f"{PROG}: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def _check_args(args: argparse.Namespace) -> list[str]:
+    """Validate the options that need no config; the contenders to run, in the order given."""
+    if not (isinstance(args.threshold, float) and math.isfinite(args.threshold) and 0.0 < args.threshold <= 1.0):
+        _fail(f"--threshold must be in (0, 1], got {args.threshold}")
+    for flag, value in (("--eval-every", args.eval_every), ("--eval-episodes", args.eval_episodes),
+                        ("--budget-steps", args.budget_steps)):  # fmt: skip
+        if value < 1:
+            _fail(f"{flag} must be >= 1, got {value}")
+    if not (math.isfinite(args.budget_minutes) and args.budget_minutes > 0):
+        _fail(f"--budget-minutes must be > 0, got {args.budget_minutes}")
+    if args.seed is not None and args.seed < 0:
+        _fail(f"--seed must be >= 0, got {args.seed}")
+    chosen = list(dict.fromkeys(c.strip() for c in args.contenders.split(",") if c.strip()))
+    if not chosen:
+        _fail(f"--contenders is empty; choose from {list(CONTENDERS)}")
+    unknown = [c for c in chosen if c not in CONTENDERS]
+    if unknown:
+        _fail(f"unknown contender(s) {unknown}; choose from {list(CONTENDERS)}")
+    return chosen
+
+
+def _log(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+# ---- evaluation ------------------------------------------------------------------------------
+class GreedyEvaluator:
+    """Greedy episodes of one base task on each group element, with fixed seeds.
+
+    ``episodes`` episodes per element, reset with ``eval_seed(seed, 0, i)`` for episode ``i``
+    (the same instances on every element and at every call). Envs are built once and kept:
+    Meta-World envs switch their element in place (``set_element``), others are kept per element.
+    At most :data:`EVAL_WAVE` envs are stepped together.
+    """
+
+    def __init__(self, env_cfg: Any, task: str, elements: Sequence[str], episodes: int, seed: int) -> None:
+        from ..evaluation.protocol import eval_seed
+
+        if episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {episodes}")
+        if not elements:
+            raise ValueError("no group elements to evaluate")
+        self.env_cfg, self.task = env_cfg, task
+        self.elements = [str(g) for g in elements]
+        self.seeds = [eval_seed(seed, 0, i) for i in range(episodes)]  # group 0: the only group of the stream
+        self._pool: dict[int, Any] = {}  # wave slot -> env that can switch its element
+        self._fixed: dict[tuple[str, int], Any] = {}  # (element, slot) -> env of that element
+
+    def _env(self, g: str, slot: int) -> Any:
+        from ..envs import make_task
+        from ..symmetry import GroupElement
+
+        env = self._pool.get(slot)
+        if env is not None:
+            if env.g.name != g:
+                env.set_element(GroupElement.from_name(g))
+            return env
+        env = self._fixed.get((g, slot))
+        if env is None:
+            env = make_task(self.env_cfg, self.task, g)
+            if hasattr(env, "set_element"):
+                self._pool[slot] = env
+            else:
+                self._fixed[(g, slot)] = env
+        return env
+
+    def evaluate(self, choose: Chooser) -> tuple[dict[str, float], dict[str, Any]]:
+        """``({element: success rate}, {element: what choose() reported for it})``.
+
+        ``choose(element, first_frames)`` returns ``(act, tag)``: the greedy policy for that element
+        and a JSON-safe tag (e.g. a policy id) recorded with the result.
+        """
+        pairs = [(g, i) for g in self.elements for i in range(len(self.seeds))]
+        success: dict[tuple[str, int], float] = {}
+        tags: dict[str, Any] = {}
+        for start in range(0, len(pairs), EVAL_WAVE):
+            wave = pairs[start : start + EVAL_WAVE]
+            envs = [self._env(g, slot) for slot, (g, _) in enumerate(wave)]
+            obs = [env.reset(seed=int(self.seeds[i]))[0] for env, (_, i) in zip(envs, wave)]
+            acts: dict[str, ActFn] = {}
+            for g in dict.fromkeys(g for g, _ in wave):
+                rows = [j for j, (h, _) in enumerate(wave) if h == g]
+                acts[g], tags[g] = choose(g, _stack([obs[j] for j in rows]))
+            best = [0.0] * len(wave)
+            live = list(range(len(wave)))
+            while live:
+                by_policy: dict[int, list[int]] = {}  # one batched call per distinct policy
+                for j in live:
+                    by_policy.setdefault(id(acts[wave[j][0]]), []).append(j)
+                for rows in by_policy.values():
+                    act = acts[wave[rows[0]][0]]
+                    actions = np.asarray(act(_stack([obs[j] for j in rows])), dtype=np.float32)
+                    for j, action in zip(rows, actions):
+                        obs[j], _, terminated, truncated, info = envs[j].step(action)
+                        best[j] = max(best[j], float(info.get("success", 0.0)))
+                        if terminated or truncated:
+                            live.remove(j)
+            for j, key in enumerate(wave):
+                success[key] = best[j]
+        rates = {g: float(np.mean([success[(g, i)] for i in range(len(self.seeds))])) for g in self.elements}
+        return rates, tags
+
+    def close(self) -> None:
+        for env in [*self._pool.values(), *self._fixed.values()]:
+            env.close()
+        self._pool.clear()
+        self._fixed.clear()
+
+
+def _stack(obs: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    return {"image": np.stack([o["image"] for o in obs]), "proprio": np.stack([o["proprio"] for o in obs])}
+
+
+def covers_actor(model: Any) -> ActFn:
+    """The greedy policy of a covers-dist actor-critic: its mean action (the env clips, as in training)."""
+
+    def act(obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        return model.act(obs, deterministic=True)[0]
+
+    return act
+
+
+def rllib_actor(module: Any, action_space: Any, normalize_actions: bool = True) -> ActFn:
+    """The greedy policy of an RLlib RLModule on the image alone: the mean of its diagonal Gaussian
+    (``action_dist_inputs`` = ``[mean, log_std]``), unsquashed (``normalize_actions``) and clipped to
+    ``action_space`` as RLlib's module-to-env connector does."""
+    import torch
+    from ray.rllib.core.columns import Columns
+    from ray.rllib.utils.spaces.space_utils import unsquash_action
+
+    dim = int(np.prod(action_space.shape))
+
+    def act(obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        image = torch.from_numpy(np.asarray(obs["image"], dtype=np.float32) * (1.0 / 255.0))
+        with torch.no_grad():
+            out = module.forward_inference({Columns.OBS: image})
+        mean = out[Columns.ACTION_DIST_INPUTS][:, :dim].cpu().numpy().astype(np.float32)
+        if normalize_actions:
+            return np.stack([unsquash_action(a, action_space) for a in mean]).astype(np.float32)
+        return np.clip(mean, action_space.low, action_space.high)
+
+    return act
+
+
+# ---- contenders ------------------------------------------------------------------------------
+class _CoversContender:
+    """covers-dist's loop (:class:`~covers_dist.runtime.driver.Trainer`) on the serial or Ray backend."""
+
+    def __init__(self, cfg: Any) -> None:
+        from ..envs import suite_layout
+        from ..runtime.driver import Trainer
+
+        self.cfg = cfg
+        self.layout = suite_layout(cfg.env.suite, cfg.env.image_size)
+        self.trainer = Trainer(cfg, log=lambda *_: None)
+        self.trainer._new_policy(0)  # as Trainer.run starts: policy 0's learner and weights
+        backend = self.trainer.backend
+        if getattr(backend, "name", "") == "ray":  # wait until the rollout actors are up: start-up, not training
+            backend.ray.get([w.stats.remote() for w in backend.workers])
+        self._models: dict[int, tuple[int, Any, ActFn]] = {}  # policy id -> (loaded version, model, actor)
+
+    @property
+    def env_steps(self) -> int:
+        return int(self.trainer.env_steps)
+
+    def train_once(self) -> None:
+        self.trainer.step()
+
+    def before_eval(self) -> None:
+        self.trainer.drain()  # the update in flight lands and is published
+
+    def _actor(self, pid: int) -> ActFn:
+        from ..models import build_actor_critic
+        from ..runtime.ray_setup import resolve_weights
+
+        version = self.trainer.versions[pid]
+        loaded = self._models.get(pid)
+        if loaded is None or loaded[0] != version:
+            model = loaded[1] if loaded is not None else build_actor_critic(self.cfg.network, self.layout, seed=0)
+            model.set_weights(resolve_weights(self.trainer.handles[pid]))
+            model.eval()
+            self._models[pid] = (version, model, covers_actor(model))
+        return self._models[pid][2]
+
+    def policy_for(self, first_frames: Mapping[str, np.ndarray]) -> int:
+        """The policy the bank would pick for these first frames (the only one when it holds one)."""
+        policies = sorted(self.trainer.versions)
+        if len(policies) == 1:
+            return policies[0]
+        n = len(first_frames["image"])
+        record = self.trainer.backend.call_clustering("what_if", dict(first_frames), [0] * n, policies)
+        pid = int(record["policy_id"])
+        if pid in self.trainer.versions:
+            return pid
+        dists = {int(k): float(v) for k, v in (record.get("distances") or {}).items() if v is not None}
+        dists = {k: v for k, v in dists.items() if k in self.trainer.versions}
+        return min(dists, key=lambda k: dists[k]) if dists else int(self.trainer.current_policy)
+
+    def chooser(self) -> Chooser:
+        def choose(g: str, first: Mapping[str, np.ndarray]) -> tuple[ActFn, Any]:
+            pid = self.policy_for(first)
+            return self._actor(pid), pid
+
+        return choose
+
+    def extra(self) -> dict[str, Any]:
+        return {"num_policies": len(self.trainer.versions)}
+
+    def close(self) -> None:
+        self.trainer.close()
+
+
+class _RLlibContender:
+    """RLlib's PPO (new API stack, default CNN on the image) on the group's transforms."""
+
+    def __init__(self, cfg: Any, elements: Sequence[str]) -> None:
+        from .rllib_peer import build_rllib_ppo
+
+        self.algo = build_rllib_ppo(cfg, "default", transforms=list(elements))
+        self.steps = 0
+        self.iterations = 0
+
+    @property
+    def env_steps(self) -> int:
+        return self.steps
+
+    def train_once(self) -> None:
+        from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED
+
+        result = self.algo.train()
+        self.steps += int(result[ENV_RUNNER_RESULTS][NUM_ENV_STEPS_SAMPLED])
+        self.iterations += 1
+
+    def before_eval(self) -> None:
+        """Nothing in flight: ``train()`` returns once the weights are synced to the env runners."""
+
+    def chooser(self) -> Chooser:
+        module = self.algo.get_module()  # the local env runner's copy, synced by every train()
+        module.eval()
+        act = rllib_actor(module, module.action_space, bool(self.algo.config.normalize_actions))
+        return lambda g, first: (act, None)
+
+    def extra(self) -> dict[str, Any]:
+        return {"iterations": self.iterations}
+
+    def close(self) -> None:
+        self.algo.stop()
+
+
+# ---- one race --------------------------------------------------------------------------------
+def race(
+    name: str,
+    contender: Any,
+    evaluator: GreedyEvaluator,
+    threshold: float,
+    eval_every: int,
+    budget_steps: int,
+    budget_s: float,
+    log: Callable[[str], None] = _log,
+) -> dict[str, Any]:
+    """Train ``contender`` until its greedy policy reaches ``threshold`` on every element or its
+    budget ends, evaluating (clock paused) at 0 env steps and every ``eval_every`` env steps."""
+    curve: list[dict[str, Any]] = []
+    train_s, eval_s, next_eval = 0.0, 0.0, 0
+    reached: dict[str, Any] | None = None
+
+    def evaluate() -> dict[str, Any]:
+        nonlocal train_s, eval_s
+        t0 = time.perf_counter()
+        contender.before_eval()
+        train_s += time.perf_counter() - t0
+        t1 = time.perf_counter()
+        success, tags = evaluator.evaluate(contender.chooser())
+        spent = time.perf_counter() - t1
+        eval_s += spent
+        values = list(success.values())
+        point = {
+            "env_steps": contender.env_steps,
+            "train_wall_s": round(train_s, 3),
+            "eval_s": round(spent, 3),
+            "min_success": float(min(values)),
+            "mean_success": float(np.mean(values)),
+            "success": success,
+            **({"policy": tags} if any(t is not None for t in tags.values()) else {}),
+            **contender.extra(),
+        }
+        curve.append(point)
+        steps = point["env_steps"]
+        rate = steps / train_s if train_s > 0 else 0.0
+        left = budget_steps - steps
+        if rate > 0 and left > 0:  # wall-clock time to the step budget, evaluations included
+            eta = min(left / rate, max(budget_s - train_s, 0.0)) * (train_s + eval_s) / max(train_s, 1e-9)
+            eta_txt = f"ETA {_duration(eta)} to the budget ({budget_steps} steps, {budget_s / 60:g} min of training)"
+        else:
+            eta_txt = "budget spent" if left <= 0 else "ETA n/a"
+        log(
+            f"learn {name}: {steps} env steps, {train_s:.1f} s training ({rate:.0f} steps/s), success min "
+            f"{point['min_success']:.2f} mean {point['mean_success']:.2f} (eval {spent:.1f} s); {eta_txt}"
+        )
+        return point
+
+    stopped = "steps"
+    while True:
+        if contender.env_steps >= next_eval:
+            point = evaluate()
+            next_eval = (contender.env_steps // eval_every + 1) * eval_every
+            if point["min_success"] >= threshold:
+                reached, stopped = point, "threshold"
+                break
+        out_of = "steps" if contender.env_steps >= budget_steps else ("minutes" if train_s >= budget_s else None)
+        if out_of is not None:
+            stopped = out_of
+            if curve[-1]["env_steps"] != contender.env_steps:  # the newest policy gets its evaluation too
+                point = evaluate()
+                if point["min_success"] >= threshold:
+                    reached, stopped = point, "threshold"
+            break
+        t0 = time.perf_counter()
+        contender.train_once()
+        train_s += time.perf_counter() - t0
+    final_steps = contender.env_steps
+    if reached is not None:
+        log(f"learn {name}: success >= {threshold} on every transform after {reached['env_steps']} env steps, "
+            f"{reached['train_wall_s']:.1f} s of training")  # fmt: skip
+    else:
+        log(f"learn {name}: {stopped} budget spent at {final_steps} env steps, {train_s:.1f} s of training; "
+            f"best min success {max(p['min_success'] for p in curve):.2f}")  # fmt: skip
+    return {
+        "reached": reached is not None,
+        "env_steps_to_threshold": reached["env_steps"] if reached else None,
+        "wall_s_to_threshold": reached["train_wall_s"] if reached else None,
+        "best_min_success": max(p["min_success"] for p in curve),
+        "best_mean_success": max(p["mean_success"] for p in curve),
+        "stopped": stopped,
+        "env_steps": final_steps,
+        "train_wall_s": round(train_s, 3),
+        "eval_s": round(eval_s, 3),
+        "steps_per_s": round(final_steps / train_s, 1) if train_s > 0 else None,
+        "curve": curve,
+    }
+
+
+def _duration(seconds: float) -> str:
+    seconds = max(0.0, float(seconds))
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def _run_contender(
+    name: str, cfg: Any, elements: list[str], evaluator: GreedyEvaluator, args: argparse.Namespace
+) -> dict[str, Any]:
+    """Build one contender (Ray started for it and shut down after), race it, tear it down."""
+    from ..runtime.ray_setup import init_ray, shutdown_ray
+
+    use_ray = name == "rllib" or not cfg.runtime.serial
+    t0 = time.perf_counter()
+    if use_ray:
+        init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address)
+    contender: Any = None
+    try:
+        contender = _RLlibContender(cfg, elements) if name == "rllib" else _CoversContender(cfg)
+        setup_s = time.perf_counter() - t0
+        _log(f"learn {name}: ready after {setup_s:.1f} s of start-up")
+        result = race(
+            name, contender, evaluator, args.threshold, args.eval_every, args.budget_steps, args.budget_minutes * 60.0
+        )
+        result["setup_s"] = round(setup_s, 3)
+        result["backend"] = "rllib" if name == "rllib" else ("serial" if cfg.runtime.serial else "ray")
+        return result
+    finally:
+        if contender is not None:
+            contender.close()
+        if use_ray:
+            shutdown_ray()
+
+
+# ---- results ---------------------------------------------------------------------------------
+def ratios(contenders: Mapping[str, Mapping[str, Any]]) -> dict[str, float | None]:
+    """covers / rllib and covers / cnn, in training seconds and env steps to the threshold (below 1:
+    covers got there sooner); None where either did not reach it (or did not run)."""
+
+    def ratio(a: str, b: str, key: str) -> float | None:
+        x, y = contenders.get(a, {}), contenders.get(b, {})
+        if not (x.get("reached") and y.get("reached")):
+            return None
+        top, bottom = x.get(key), y.get(key)
+        if top is None or bottom is None or bottom <= 0:
+            return None
+        return round(float(top) / float(bottom), 3)
+
+    return {
+        "covers_wall_vs_rllib": ratio("covers", "rllib", "wall_s_to_threshold"),
+        "covers_steps_vs_rllib": ratio("covers", "rllib", "env_steps_to_threshold"),
+        "covers_wall_vs_cnn": ratio("covers", "cnn", "wall_s_to_threshold"),
+        "covers_steps_vs_cnn": ratio("covers", "cnn", "env_steps_to_threshold"),
+    }
+
+
+def plot_curves(result: Mapping[str, Any], path: str | Path) -> Path:
+    """Min-over-transforms (solid) and mean (dashed) success of each contender, vs env steps and
+    vs training seconds, with the threshold; written to ``path`` (Agg backend)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for k, (name, res) in enumerate(result["contenders"].items()):
+        curve = res.get("curve") or []
+        if not curve:
+            continue
+        color = f"C{k}"
+        for ax, key in zip(axes, ("env_steps", "train_wall_s")):
+            xs = [p[key] for p in curve]
+            ax.plot(xs, [p["min_success"] for p in curve], "-o", color=color, ms=3, label=f"{name} min")
+            ax.plot(xs, [p["mean_success"] for p in curve], "--", color=color, alpha=0.7, label=f"{name} mean")
+    for ax, label in zip(axes, ("env steps", "training wall-clock (s)")):
+        ax.axhline(result["threshold"], color="grey", lw=0.8, ls=":")
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("greedy success over transforms")
+    axes[0].set_ylim(-0.03, 1.03)
+    axes[1].legend(loc="lower right", fontsize=8)
+    fig.suptitle(f"{result['task']} under {result['group']} ({len(result['transforms'])} transforms)")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _summary(result: Mapping[str, Any]) -> str:
+    lines = [f"{result['task']} under {result['group']}, threshold {result['threshold']}:"]
+    for name, res in result["contenders"].items():
+        if "error" in res:
+            lines.append(f"  {name}: failed: {res['error']}")
+            continue
+        if res["reached"]:
+            what = f"reached after {res['env_steps_to_threshold']} env steps, {res['wall_s_to_threshold']:.1f} s"
+        else:
+            what = f"not reached ({res['stopped']} budget spent): best min success {res['best_min_success']:.2f}"
+        lines.append(f"  {name}: {what} ({res['env_steps']} env steps, {res['train_wall_s']:.1f} s of training)")
+    for key, value in result["ratios"].items():
+        if value is not None:
+            lines.append(f"  {key}: {value}")
+    return "\n".join(lines)
+
+
+# ---- the benchmark ---------------------------------------------------------------------------
+def run(args: argparse.Namespace) -> int:
+    from ..config import load_config
+    from ..envs import task_names
+    from ..symmetry import get_group
+
+    chosen = _check_args(args)
+    user = list(args.overrides)
+    if args.seed is not None:
+        user.append(f"seed={args.seed}")
+    base = load_config(args.config, user)
+    valid = list(task_names(base.env.suite))
+    task = args.task if args.task is not None else base.env.tasks[0]
+    if task not in valid:
+        _fail(f"unknown {base.env.suite} task {task!r} for --task; valid tasks: {', '.join(valid)}")
+    elements = [g.name for g in get_group(base.env.group)]
+    serial = bool(args.serial or base.runtime.serial)
+    # one task group: every episode a new segment (seeded shuffles of the group; --set may change
+    # that), no held-out pairs
+    overrides = ["env.episodes_per_task=1", *user, f"env.tasks=[{task}]", "env.held_out=0", "eval.tasks=null"]
+    cfg0 = load_config(args.config, overrides)
+    evaluator = GreedyEvaluator(cfg0.env, task, elements, args.eval_episodes, cfg0.seed)
+    result: dict[str, Any] = {
+        "task": task,
+        "group": cfg0.env.group,
+        "transforms": elements,
+        "threshold": args.threshold,
+        "budget": {"env_steps": args.budget_steps, "minutes": args.budget_minutes},
+        "eval": {"every_env_steps": args.eval_every, "episodes_per_transform": args.eval_episodes},
+        "config": args.config,
+        "overrides": list(args.overrides),
+        "seed": cfg0.seed,
+        "contenders": {},
+    }
+    _log(
+        f"learn: {task} under {cfg0.env.group} ({len(elements)} transforms), threshold {args.threshold}, "
+        f"budget {args.budget_steps} env steps / {args.budget_minutes:g} min each, contenders {', '.join(chosen)}"
+    )
+    failed = False
+    try:
+        for name in chosen:
+            run_dir = tempfile.mkdtemp(prefix=f"covers-learn-{name}-")
+            extra = [f"runtime.run_dir={run_dir}", f"runtime.serial={str(serial).lower()}"]
+            try:
+                cfg = load_config(args.config, [*overrides, *CONTENDER_OVERRIDES.get(name, []), *extra])
+                result["contenders"][name] = _run_contender(name, cfg, elements, evaluator, args)
+            except KeyboardInterrupt:
+                raise
+            except Exception as e:  # noqa: BLE001 - reported; the other contenders still run
+                failed = True
+                _log(f"learn {name}: failed: {type(e).__name__}: {e}\n{traceback.format_exc(limit=6)}")
+                result["contenders"][name] = {"reached": False, "error": f"{type(e).__name__}: {e}", "curve": []}
+            finally:
+                shutil.rmtree(run_dir, ignore_errors=True)
+    finally:
+        evaluator.close()
+    result["ratios"] = ratios(result["contenders"])
+    plots = [Path(args.plot)] if args.plot else []
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "result.json").write_text(json.dumps(result, indent=1) + "\n")
+        plots.append(out / "curves.png")
+    for path in plots:
+        _log(f"learn: curves written to {plot_curves(result, path)}")
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(_summary(result))
+    return 1 if failed else 0

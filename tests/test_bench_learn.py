@@ -1,0 +1,246 @@
+"""`covers-dist bench learn`: argument errors, a short real run on the toy suite, the evaluation
+protocol, the race's stopping rules and RLlib's env on the group's transforms."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from covers_dist.bench.learn import GreedyEvaluator, covers_actor, race, ratios
+from covers_dist.config import config_to_dict, load_config
+from covers_dist.symmetry import get_group
+
+ROOT = Path(__file__).resolve().parents[1]
+EXE = str(Path(sys.executable).parent / "covers-dist")
+D4 = [g.name for g in get_group("D4")]
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+    env.pop("RAY_ADDRESS", None)
+    env["PATH"] = f"{Path(sys.executable).parent}:{env.get('PATH', '')}"
+    return env
+
+
+def _learn(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    cmd = [EXE, "bench", "learn", "--config", "configs/smoke.yaml", *argv]
+    return subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=timeout)
+
+
+# ---- argument errors -----------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--task", "no-such-task"], ["unknown", "no-such-task", "reach", "push", "avoid"]),
+        (["--threshold", "1.5"], ["--threshold", "(0, 1]"]),
+        (["--threshold", "0"], ["--threshold"]),
+        (["--contenders", "covers,tf-agents"], ["unknown contender", "tf-agents", "rllib"]),
+        (["--eval-every", "0"], ["--eval-every", ">= 1"]),
+    ],
+)
+def test_bad_arguments_are_one_line_errors(argv, words):
+    res = _learn(*argv, timeout=120)
+    assert res.returncode == 2, res.stderr
+    err = res.stderr.strip()
+    assert len(err.splitlines()) == 1, err
+    for word in words:
+        assert word in err, err
+    assert res.stdout == ""
+
+
+# ---- a short real run ------------------------------------------------------------------------------
+def test_short_serial_covers_run_writes_curves(tmp_path):
+    out = tmp_path / "out"
+    res = _learn("--task", "reach", "--contenders", "covers", "--serial", "--budget-steps", "2000",
+                 "--eval-every", "1000", "--set", "ppo.epochs=1", "--json", "--out", str(out))  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    result = json.loads(res.stdout.strip().splitlines()[-1])
+    assert result["task"] == "reach" and result["group"] == "D4" and result["transforms"] == D4
+    assert result["threshold"] == 0.9 and result["budget"]["env_steps"] == 2000
+    assert set(result["contenders"]) == {"covers"}
+    assert set(result["ratios"]) >= {"covers_wall_vs_rllib", "covers_steps_vs_rllib", "covers_wall_vs_cnn"}
+    covers = result["contenders"]["covers"]
+    for key in ("reached", "env_steps_to_threshold", "wall_s_to_threshold", "best_min_success", "curve"):
+        assert key in covers
+    curve = covers["curve"]
+    assert len(curve) >= 2
+    steps = [p["env_steps"] for p in curve]
+    assert steps == sorted(set(steps)) and steps[0] == 0
+    walls = [p["train_wall_s"] for p in curve]
+    assert walls == sorted(walls)
+    for p in curve:
+        assert sorted(p["success"]) == sorted(D4)
+        assert all(0.0 <= v <= 1.0 for v in p["success"].values())
+        assert p["min_success"] == min(p["success"].values())
+        assert p["mean_success"] == pytest.approx(np.mean(list(p["success"].values())))
+    if covers["reached"]:
+        assert covers["env_steps_to_threshold"] in steps
+    else:
+        assert steps[-1] >= 2000 and covers["stopped"] in ("steps", "minutes")
+    assert covers["best_min_success"] == max(p["min_success"] for p in curve)
+    assert "env steps" in res.stderr and "steps/s" in res.stderr  # progress lines
+    assert json.loads((out / "result.json").read_text())["contenders"]["covers"]["curve"] == curve
+    assert (out / "curves.png").stat().st_size > 1000
+
+
+# ---- evaluation, stopping rules, ratios --------------------------------------------------------------
+def test_greedy_evaluation_is_deterministic_and_covers_every_transform(one_torch_thread):
+    from covers_dist.envs import suite_layout
+    from covers_dist.models import build_actor_critic
+
+    cfg = load_config("configs/smoke.yaml", ["env.tasks=[reach]"])
+    model = build_actor_critic(cfg.network, suite_layout("toy", cfg.env.image_size), seed=3).eval()
+    evaluator = GreedyEvaluator(cfg.env, "reach", D4, episodes=2, seed=cfg.seed)
+    calls: list[tuple[str, int]] = []
+
+    def choose(g, first):
+        calls.append((g, len(first["image"])))
+        return covers_actor(model), 0
+
+    try:
+        first, tags = evaluator.evaluate(choose)
+        again, _ = evaluator.evaluate(choose)
+    finally:
+        evaluator.close()
+    assert first == again
+    assert sorted(first) == sorted(D4) and all(0.0 <= v <= 1.0 for v in first.values())
+    assert tags == {g: 0 for g in D4}
+    assert sorted(calls) == sorted([(g, 2) for g in D4] * 2)  # one choice per transform, from its 2 first frames
+
+
+def test_greedy_evaluation_counts_success_ever_reached():
+    cfg = load_config("configs/smoke.yaml", ["env.tasks=[reach]"])
+    evaluator = GreedyEvaluator(cfg.env, "reach", ["e", "r"], episodes=2, seed=0)
+    try:
+        still, _ = evaluator.evaluate(lambda g, first: (lambda obs: np.zeros((len(obs["image"]), 2), np.float32), g))
+    finally:
+        evaluator.close()
+    assert still == {"e": 0.0, "r": 0.0}  # standing still never reaches the goal
+
+
+def test_covers_evaluates_each_transform_with_the_policy_the_bank_picks(tmp_path, one_torch_thread):
+    from covers_dist.bench.learn import _CoversContender
+
+    # a tiny threshold: every iteration creates a policy, so the bank holds several
+    cfg = load_config("configs/smoke.yaml", [
+        "env.tasks=[reach]", "env.episodes_per_task=1", "runtime.serial=true", "runtime.method=covers-cnn",
+        "network.kind=cnn", "clustering.threshold=0.000001", "ppo.epochs=1", f"runtime.run_dir={tmp_path}",
+    ])  # fmt: skip
+    contender = _CoversContender(cfg)
+    evaluator = GreedyEvaluator(cfg.env, "reach", D4, episodes=2, seed=cfg.seed)
+    try:
+        for _ in range(3):
+            contender.train_once()
+        contender.before_eval()
+        policies = sorted(contender.trainer.versions)
+        assert len(policies) > 1 and contender.env_steps == 3 * 16 * 25
+        success, chosen = evaluator.evaluate(contender.chooser())
+        assert sorted(success) == sorted(D4) and set(chosen.values()) <= set(policies)
+        for g in D4:  # the bank's what-if choice (its nearest policy where it would create one)
+            frames = [evaluator._env(g, i).reset(seed=seed)[0] for i, seed in enumerate(evaluator.seeds)]
+            first = {k: np.stack([f[k] for f in frames]) for k in ("image", "proprio")}
+            assert contender.policy_for(first) == chosen[g]
+        again, chosen_again = evaluator.evaluate(contender.chooser())
+        assert (again, chosen_again) == (success, chosen) and len(contender._models) <= len(policies)
+    finally:
+        evaluator.close()
+        contender.close()
+
+
+class _FakeContender:
+    def __init__(self, per_iter: int, success_at: int | None) -> None:
+        self.env_steps, self.per_iter, self.success_at = 0, per_iter, success_at
+        self.drains = 0
+
+    def train_once(self) -> None:
+        self.env_steps += self.per_iter
+
+    def before_eval(self) -> None:
+        self.drains += 1
+
+    def chooser(self):
+        return self.env_steps  # the fake evaluator reads it
+
+    def extra(self):
+        return {}
+
+
+class _FakeEvaluator:
+    def __init__(self, contender: _FakeContender) -> None:
+        self.contender = contender
+
+    def evaluate(self, steps):
+        hit = self.contender.success_at is not None and steps >= self.contender.success_at
+        return {g: (1.0 if hit else 0.5 if g == "e" else 0.0) for g in D4}, {g: 0 for g in D4}
+
+
+def test_race_stops_at_the_threshold_or_the_budget():
+    fast = _FakeContender(per_iter=300, success_at=1500)
+    res = race("fake", fast, _FakeEvaluator(fast), 0.9, 1000, 10_000, 600.0, log=lambda _: None)
+    assert res["reached"] and res["stopped"] == "threshold"
+    assert [p["env_steps"] for p in res["curve"]] == [0, 1200, 2100]  # first evaluation past each multiple
+    assert res["env_steps_to_threshold"] == 2100 and res["best_min_success"] == 1.0
+    assert fast.drains == 3 and fast.env_steps == 2100  # stops training at once
+
+    slow = _FakeContender(per_iter=400, success_at=None)
+    res = race("fake", slow, _FakeEvaluator(slow), 0.9, 1000, 1500, 600.0, log=lambda _: None)
+    assert not res["reached"] and res["stopped"] == "steps" and res["env_steps_to_threshold"] is None
+    assert [p["env_steps"] for p in res["curve"]] == [0, 1200, 1600]  # the budget's end is evaluated too
+    assert res["best_min_success"] == 0.0 and res["best_mean_success"] == pytest.approx(0.5 / 8)
+
+
+def test_ratios_need_both_contenders_to_reach():
+    done = {"reached": True, "wall_s_to_threshold": 10.0, "env_steps_to_threshold": 4000}
+    other = {"reached": True, "wall_s_to_threshold": 40.0, "env_steps_to_threshold": 8000}
+    r = ratios({"covers": done, "rllib": other, "cnn": {"reached": False}})
+    assert r["covers_wall_vs_rllib"] == 0.25 and r["covers_steps_vs_rllib"] == 0.5
+    assert r["covers_wall_vs_cnn"] is None and r["covers_steps_vs_cnn"] is None
+    assert ratios({"covers": done})["covers_wall_vs_rllib"] is None
+
+
+# ---- RLlib's env on the group's transforms --------------------------------------------------------------
+def test_image_only_task_draws_transforms_from_the_reset_seed():
+    from covers_dist.bench.rllib_peer import ImageOnlyTask
+
+    cfg = load_config("configs/smoke.yaml", ["env.tasks=[reach]"])
+    env = ImageOnlyTask({"config": config_to_dict(cfg), "task": "reach", "transforms": D4})
+    drawn = []
+    for seed in range(12):
+        obs, _ = env.reset(seed=seed)
+        g = env.g.name
+        again, _ = env.reset(seed=seed)
+        assert env.g.name == g and np.array_equal(obs, again)  # the same seed: the same g and instance
+        assert obs.dtype == np.float32 and obs.shape == (32, 32, 3) and 0.0 <= obs.min() and obs.max() <= 1.0
+        drawn.append(g)
+    assert len(set(drawn)) >= 4
+    # auto-resets (no seed) go on reproducibly from the last seeded reset
+    env.reset(seed=5)
+    tail = [(env.reset()[0].sum(), env.g.name) for _ in range(6)]
+    env.reset(seed=5)
+    assert [(env.reset()[0].sum(), env.g.name) for _ in range(6)] == tail
+    assert len({g for _, g in tail}) > 1
+    env.close()
+    plain = ImageOnlyTask({"config": config_to_dict(cfg), "task": "reach"})
+    for seed in range(4):
+        plain.reset(seed=seed)
+        assert plain.g.name == "e"  # bench train's behaviour: the identity only
+    plain.close()
+    with pytest.raises(ValueError, match="transforms"):
+        ImageOnlyTask({"config": config_to_dict(cfg), "task": "reach", "transforms": []})
+
+
+def test_short_rllib_run(tmp_path):
+    res = _learn("--task", "reach", "--contenders", "rllib", "--budget-steps", "400", "--eval-every", "400",
+                 "--set", "runtime.num_workers=1", "--json", timeout=300)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    rllib = json.loads(res.stdout.strip().splitlines()[-1])["contenders"]["rllib"]
+    assert [p["env_steps"] for p in rllib["curve"]] == [0, 400]
+    assert all(sorted(p["success"]) == sorted(D4) for p in rllib["curve"])
+    assert rllib["backend"] == "rllib" and rllib["setup_s"] > 0
