@@ -24,11 +24,11 @@ $(STAMP): requirements/lock.txt pyproject.toml scripts/install_system_deps.sh
 	$(VENV)/bin/python -c "import covers_dist, escnn, metaworld, ray, ot, fastapi, torch; print('covers-dist installed in $(VENV)')"
 	touch $(STAMP)
 
-# trains COVERS on the smoke stream (a finished demo run is reused: --resume returns at once)
+# trains COVERS on Goal Reach + Drawer Close under D4 (a finished demo run is reused: --resume returns at once)
 demo: install
-	if [ -d runs/smoke/checkpoints ]; then $(VENV)/bin/covers-dist train --resume runs/smoke; \
-	else $(VENV)/bin/covers-dist train --config configs/smoke.yaml --run-dir runs/smoke; fi
-	$(VENV)/bin/covers-dist plot runs/smoke
+	if [ -d runs/demo/checkpoints ]; then $(VENV)/bin/covers-dist train --resume runs/demo; \
+	else $(VENV)/bin/covers-dist train --config configs/demo.yaml --run-dir runs/demo; fi
+	$(VENV)/bin/covers-dist plot runs/demo
 
 test: install
 	$(VENV)/bin/python -m pytest

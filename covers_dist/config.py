@@ -123,7 +123,11 @@ class PPOConfig:
     gamma: float = _f(0.99, "Discount factor.", min=0.0, max=1.0)
     gae_lambda: float = _f(0.95, "GAE lambda.", min=0.0, max=1.0)
     clip_coef: float = _f(0.2, "PPO ratio clip epsilon.", gt=0.0)
-    vf_clip_coef: float | None = _f(0.2, "Value clipping range (null disables value clipping).")
+    vf_clip_coef: float | None = _f(
+        None,
+        "Value clipping range (null: no value clipping, the default: with return normalisation it only slowed "
+        "the critic, docs/learning.md).",
+    )
     ent_coef: float = _f(0.0, "Entropy bonus coefficient.", min=0.0)
     vf_coef: float = _f(0.5, "Value loss coefficient.", min=0.0)
     epochs: int = _f(4, "Optimization epochs per update.", min=1)
