@@ -1,9 +1,13 @@
-"""A short learning run on Meta-World with the default PPO: Drawer Close under D4, serial, seeded.
+"""Learning on Meta-World with the default PPO: Drawer Close under D4, greedy on all 8 transforms.
 
-What the default suite can afford (about a minute on 2 cores): the COVERS loop trains on every
-rotated and mirrored copy of the task and, evaluated greedily on all 8 copies with evaluation
-seeds, already succeeds on some episodes, and on every copy exactly equally (the closed loop is
-equivariant). The runs that go to 0.9 are ``covers-dist bench learn`` (docs/learning.md).
+The default suite runs a short serial run (about a minute on 2 cores) and checks what holds for
+every run: the untrained policy never closes the drawer, and at every evaluation point the one
+equivariant policy scores exactly the same on all eight rotated and mirrored copies (the closed
+loop is equivariant). Whether 24k steps are already enough to succeed depends on float rounding
+(thread count, CPU): measured here, one run reached 1.00 on all 8 after 24k env steps and another
+0.00, so the learning itself is asserted by the slow test, with a budget that covers that spread
+(docs/learning.md: 40k env steps on Ray). The toy learning test (tests/test_learning.py) is the
+default suite's learning assertion.
 """
 
 from __future__ import annotations
@@ -14,22 +18,39 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_drawer_close_learns_from_pixels_on_every_transform_alike(tmp_path):
+def _learn(tmp_path: Path, steps: int, every: int) -> tuple[list[dict], str]:
     cmd = [
         sys.executable, "-m", "covers_dist", "bench", "learn", "--config", "configs/quickstart.yaml",
-        "--task", "drawer-close-v3", "--contenders", "covers", "--serial", "--budget-steps", "8000",
-        "--eval-every", "8000", "--eval-episodes", "2", "--json", "--out", str(tmp_path),
+        "--task", "drawer-close-v3", "--contenders", "covers", "--serial", "--budget-steps", str(steps),
+        "--eval-every", str(every), "--eval-episodes", "2", "--json", "--out", str(tmp_path),
     ]  # fmt: skip
     env = {**os.environ, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
-    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1800)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
-    curve = result["contenders"]["covers"]["curve"]
-    assert [p["env_steps"] for p in curve] == [0, 8000]
-    assert curve[0]["mean_success"] == 0.0  # the untrained policy never closes the drawer
-    for point in curve:  # one equivariant policy: the same success on every transform
+    return result["contenders"]["covers"]["curve"], done.stderr
+
+
+def _same_on_every_transform(curve: list[dict]) -> None:
+    for point in curve:
         assert len(point["success"]) == 8 and len(set(point["success"].values())) == 1, point
-    assert curve[-1]["min_success"] > 0.0, done.stderr[-2000:]
+
+
+def test_drawer_close_run_scores_alike_on_every_transform(tmp_path):
+    curve, _ = _learn(tmp_path, 24000, 8000)
+    assert [p["env_steps"] for p in curve] == [0, 8000, 16000, 24000]
+    assert curve[0]["mean_success"] == 0.0  # the untrained policy never closes the drawer
+    _same_on_every_transform(curve)
+    assert (tmp_path / "curves.png").is_file()
+
+
+@pytest.mark.slow
+def test_drawer_close_is_learned_from_pixels_on_every_transform(tmp_path):
+    curve, stderr = _learn(tmp_path, 120000, 8000)
+    _same_on_every_transform(curve)
+    assert max(p["min_success"] for p in curve) >= 0.9, stderr[-3000:]
