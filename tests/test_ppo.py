@@ -270,6 +270,12 @@ def test_return_statistics_live_in_the_learner_state():
     clone = PPOLearner(make_model(seed=3), PPOConfig(epochs=1, minibatch_size=48))
     clone.load_state_dict(state)
     assert clone.return_norm.state_dict() == learner.return_norm.state_dict()
+    before = learner.return_norm.state_dict()
+    short = dict(make_episodes(model)[0])
+    short["value"] = short["value"][:-1]
+    with pytest.raises(ValueError, match="episode 0: value"):
+        learner.update([short])
+    assert learner.return_norm.state_dict() == before  # a rejected batch leaves the statistics as they were
     older = {k: v for k, v in state.items() if k != "return_norm"}  # saved before return normalisation
     clone.load_state_dict(older)
     assert clone.return_norm.count == 0

@@ -87,19 +87,30 @@ def _check_episode(i: int, ep: Mapping[str, Any]) -> int:
 
 
 def episodes_to_batch(
-    episodes: Sequence[Mapping[str, Any]], gamma: float, lam: float, reward_scale: float = 1.0
+    episodes: Sequence[Mapping[str, Any]],
+    gamma: float,
+    lam: float,
+    reward_scale: float = 1.0,
+    return_norm: "ReturnNormalizer | None" = None,
 ) -> dict[str, torch.Tensor]:
     """Flatten episodes into training tensors, with GAE advantages and returns per episode.
 
-    Rewards are multiplied by ``reward_scale`` first (values and returns live on that scale).
+    Rewards are multiplied by ``reward_scale`` first (values and returns live on that scale). With
+    ``return_norm``, the scaled rewards of these episodes are merged into its statistics once every
+    episode has passed the checks (a rejected batch leaves them as they were), and the rewards are
+    then divided by its standard deviation.
     """
     if not episodes:
         raise ValueError("update needs at least one episode")
+    lengths = [_check_episode(i, ep) for i, ep in enumerate(episodes)]
+    scale = reward_scale
+    if return_norm is not None:
+        return_norm.update([np.asarray(ep["reward"], np.float64) * reward_scale for ep in episodes])
+        scale = reward_scale / return_norm.std
     keys = ("image", "proprio", "action", "logprob", "value", "adv", "ret")
     parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
-    for i, ep in enumerate(episodes):
-        t = _check_episode(i, ep)
-        rewards = np.asarray(ep["reward"], np.float64) * reward_scale
+    for ep, t in zip(episodes, lengths):
+        rewards = np.asarray(ep["reward"], np.float64) * scale
         adv, ret = compute_gae(rewards, ep["value"], bool(ep["terminated"]), bool(ep["truncated"]), gamma, lam)
         parts["image"].append(np.asarray(ep["image"])[:t])
         parts["proprio"].append(np.asarray(ep["proprio"], np.float32)[:t])
@@ -198,11 +209,8 @@ class PPOLearner:
         """One PPO update on ``episodes``; returns the statistics listed in :data:`STAT_KEYS`."""
         cfg = self.cfg
         start = time.perf_counter()
-        scale = cfg.reward_scale
-        if self.return_norm is not None:
-            self.return_norm.update([np.asarray(ep["reward"], np.float64) * cfg.reward_scale for ep in episodes])
-            scale = cfg.reward_scale / self.return_norm.std
-        batch = episodes_to_batch(episodes, cfg.gamma, cfg.gae_lambda, scale)
+        batch = episodes_to_batch(episodes, cfg.gamma, cfg.gae_lambda, cfg.reward_scale, self.return_norm)
+        scale = cfg.reward_scale if self.return_norm is None else cfg.reward_scale / self.return_norm.std
         n = batch["action"].shape[0]
         lr = self.learning_rate()
         for group in self.optimizer.param_groups:
