@@ -244,3 +244,72 @@ def test_short_rllib_run(tmp_path):
     assert [p["env_steps"] for p in rllib["curve"]] == [0, 400]
     assert all(sorted(p["success"]) == sorted(D4) for p in rllib["curve"])
     assert rllib["backend"] == "rllib" and rllib["setup_s"] > 0
+
+
+# ---- joining separate invocations --------------------------------------------------------------------
+def _result(contenders: dict, **top) -> dict:
+    base = {"task": "reach", "group": "D4", "transforms": D4, "threshold": 0.9,
+            "eval": {"every_env_steps": 1000, "episodes_per_transform": 2}, "budget": {"env_steps": 2000, "minutes": 1.0},
+            "config": "configs/smoke.yaml", "overrides": [], "seed": 0, "contenders": contenders}  # fmt: skip
+    base.update(top)
+    return base
+
+
+def _entry(reached: bool, steps: int | None, wall: float | None) -> dict:
+    curve = [{"env_steps": 0, "train_wall_s": 0.0, "min_success": 0.0, "mean_success": 0.0}]
+    if reached:
+        curve.append({"env_steps": steps, "train_wall_s": wall, "min_success": 1.0, "mean_success": 1.0})
+    return {"reached": reached, "env_steps_to_threshold": steps, "wall_s_to_threshold": wall, "curve": curve}
+
+
+def test_merge_joins_separate_invocations_and_recomputes_ratios(tmp_path):
+    a = tmp_path / "a.json"
+    b = tmp_path / "b.json"
+    a.write_text(json.dumps(_result({"covers": _entry(True, 1000, 10.0)}, ratios={})))
+    b.write_text(json.dumps(_result({"cnn": _entry(True, 4000, 20.0), "rllib": _entry(True, 2000, 40.0)},
+                                    budget={"env_steps": 9000, "minutes": 3.0}, seed=1, ratios={})))  # fmt: skip
+    out = tmp_path / "out"
+    res = _learn("--merge", str(a), str(b), "--json", "--out", str(out), timeout=120)
+    assert res.returncode == 0, res.stderr
+    merged = json.loads(res.stdout.strip().splitlines()[-1])
+    assert list(merged["contenders"]) == ["covers", "cnn", "rllib"]
+    assert merged["ratios"] == {"covers_wall_vs_rllib": 0.25, "covers_steps_vs_rllib": 0.5,
+                                "covers_wall_vs_cnn": 0.5, "covers_steps_vs_cnn": 0.25}  # fmt: skip
+    assert merged["contenders"]["cnn"]["budget"] == {"env_steps": 9000, "minutes": 3.0}
+    assert merged["contenders"]["cnn"]["seed"] == 1 and merged["contenders"]["covers"]["seed"] == 0
+    assert merged["merged_from"] == [str(a), str(b)]
+    assert json.loads((out / "result.json").read_text()) == merged
+    assert (out / "curves.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    ("second", "words"),
+    [
+        (_result({"cnn": _entry(False, None, None)}, task="push"), ["task", "'push'", "'reach'"]),
+        (_result({"cnn": _entry(False, None, None)}, threshold=0.8), ["threshold", "0.8"]),
+        (_result({"covers": _entry(False, None, None)}), ["covers", "more than one"]),
+        ({"task": "reach"}, ["not a bench learn result", "contenders"]),
+        ([1, 2], ["not a bench learn result"]),
+    ],
+)
+def test_merge_refuses_results_that_do_not_compare(tmp_path, second, words):
+    a = tmp_path / "a.json"
+    b = tmp_path / "b.json"
+    a.write_text(json.dumps(_result({"covers": _entry(True, 1000, 10.0)})))
+    b.write_text(json.dumps(second))
+    res = _learn("--merge", str(a), str(b), timeout=120)
+    assert res.returncode == 2, res.stderr
+    err = res.stderr.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("covers-dist bench learn: --merge:"), err
+    for word in words:
+        assert word in err, err
+    assert res.stdout == ""
+
+
+def test_merge_names_a_missing_or_corrupt_file(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    for path, words in ((tmp_path / "missing.json", ["no such file", "missing.json"]), (bad, ["cannot read", "bad.json"])):
+        res = _learn("--merge", str(path), timeout=120)
+        assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+        assert all(w in res.stderr for w in words), res.stderr

@@ -36,6 +36,10 @@ to the action space as RLlib's own connector does when it acts.
 **Clock**: ``train_wall_s`` counts the seconds spent in training calls (``Trainer.step`` and
 ``drain``, ``Algorithm.train``), not the start-up (actors, learners, env runners; reported as
 ``setup_s``) nor the evaluations (``eval_s``). ``--budget-minutes`` bounds that training clock.
+
+**Separate invocations** (``--merge A/result.json B/result.json``): contenders run apart (say
+``covers`` first, ``cnn,rllib`` later) are joined into one result with its ratios and curves,
+provided they agree on the task, group, transforms, threshold and evaluation protocol.
 """
 
 from __future__ import annotations
@@ -69,7 +73,7 @@ ActFn = Callable[[Mapping[str, np.ndarray]], np.ndarray]
 #: Picks the greedy policy of one element from the first frames of its evaluation episodes.
 Chooser = Callable[[str, Mapping[str, np.ndarray]], tuple[ActFn, Any]]
 
-__all__ = ["GreedyEvaluator", "CONTENDERS", "register", "run", "plot_curves", "ratios"]
+__all__ = ["GreedyEvaluator", "CONTENDERS", "register", "run", "plot_curves", "ratios", "merge_results"]
 
 
 # ---- the command line --------------------------------------------------------------------------
@@ -96,6 +100,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object on the last stdout line")
     p.add_argument("--plot", default=None, metavar="PATH.png", help="draw the success curves there")
     p.add_argument("--out", default=None, metavar="DIR", help="write result.json and curves.png there")
+    p.add_argument("--merge", nargs="+", default=None, metavar="RESULT.json",
+                   help="train nothing: join the contenders of earlier result.json files of one task group "
+                        "(same task, group, threshold and evaluation) into one result, its ratios and curves")  # fmt: skip
     p.set_defaults(func=run)
 
 
@@ -557,9 +564,86 @@ def _summary(result: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
+# ---- joining separate invocations ----------------------------------------------------------------
+#: What must agree for two results to be compared side by side.
+_MERGE_KEYS = ("task", "group", "transforms", "threshold", "eval")
+
+
+def merge_results(results: Sequence[Mapping[str, Any]], sources: Sequence[str] | None = None) -> dict[str, Any]:
+    """One result from the results of separate invocations on the same task group.
+
+    The contenders of every result are joined (each may appear once) and the ratios recomputed.
+    Results must agree on :data:`_MERGE_KEYS`; budgets, configs, overrides and seeds may differ and
+    are kept per contender (``budget``, ``config``, ``overrides``, ``seed`` under each contender).
+    Raises ``ValueError`` naming what does not match.
+    """
+    names = list(sources) if sources is not None else [f"result {i}" for i in range(len(results))]
+    if not results:
+        raise ValueError("nothing to merge")
+    first = results[0]
+    merged: dict[str, Any] = {key: first[key] for key in _MERGE_KEYS}
+    merged["contenders"] = {}
+    for name, res in zip(names, results):
+        missing = [k for k in (*_MERGE_KEYS, "contenders") if k not in res]
+        if missing:
+            raise ValueError(f"{name}: not a bench learn result (no {', '.join(missing)})")
+        for key in _MERGE_KEYS:
+            if res[key] != first[key]:
+                raise ValueError(f"{name}: {key} {res[key]!r} differs from {names[0]}'s {first[key]!r}")
+        for contender, entry in res["contenders"].items():
+            if contender in merged["contenders"]:
+                raise ValueError(f"{name}: contender {contender!r} appears in more than one result")
+            own = {k: res[k] for k in ("budget", "config", "overrides", "seed") if k in res}
+            merged["contenders"][contender] = {**entry, **own}
+    merged["merged_from"] = names
+    merged["ratios"] = ratios(merged["contenders"])
+    return merged
+
+
+def _load_result(path: str) -> dict[str, Any]:
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        _fail(f"--merge: no such file {path}")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        _fail(f"--merge: cannot read {path} as JSON: {e}")
+    if not isinstance(data, dict):
+        _fail(f"--merge: {path} is not a bench learn result (a JSON object)")
+    return data
+
+
+def _report(result: Mapping[str, Any], args: argparse.Namespace) -> None:
+    """Write ``--out`` / ``--plot`` and print the summary (or ``--json``)."""
+    plots = [Path(args.plot)] if args.plot else []
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "result.json").write_text(json.dumps(result, indent=1) + "\n")
+        plots.append(out / "curves.png")
+    for path in plots:
+        _log(f"learn: curves written to {plot_curves(result, path)}")
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(_summary(result))
+
+
+def _merge(args: argparse.Namespace) -> int:
+    results = [_load_result(path) for path in args.merge]
+    try:
+        result = merge_results(results, list(args.merge))
+    except ValueError as e:
+        _fail(f"--merge: {e}")
+    _report(result, args)
+    return 0
+
+
 # ---- the benchmark ---------------------------------------------------------------------------
 def run(args: argparse.Namespace) -> int:
     from ..config import load_config
+
+    if getattr(args, "merge", None):
+        return _merge(args)
     from ..envs import task_names
     from ..symmetry import get_group
 
@@ -614,16 +698,5 @@ def run(args: argparse.Namespace) -> int:
     finally:
         evaluator.close()
     result["ratios"] = ratios(result["contenders"])
-    plots = [Path(args.plot)] if args.plot else []
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "result.json").write_text(json.dumps(result, indent=1) + "\n")
-        plots.append(out / "curves.png")
-    for path in plots:
-        _log(f"learn: curves written to {plot_curves(result, path)}")
-    if args.json:
-        print(json.dumps(result))
-    else:
-        print(_summary(result))
+    _report(result, args)
     return 1 if failed else 0
