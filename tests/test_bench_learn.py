@@ -289,6 +289,8 @@ def test_merge_joins_separate_invocations_and_recomputes_ratios(tmp_path):
         (_result({"cnn": _entry(False, None, None)}, threshold=0.8), ["threshold", "0.8"]),
         (_result({"covers": _entry(False, None, None)}), ["covers", "more than one"]),
         ({"task": "reach"}, ["not a bench learn result", "contenders"]),
+        (_result([1, 2]), ["not a bench learn result", "contenders"]),
+        (_result({"cnn": 3}), ["not a bench learn result", "contenders"]),
         ([1, 2], ["not a bench learn result"]),
     ],
 )
@@ -304,6 +306,15 @@ def test_merge_refuses_results_that_do_not_compare(tmp_path, second, words):
     for word in words:
         assert word in err, err
     assert res.stdout == ""
+
+
+def test_merge_checks_the_first_result_too(tmp_path):
+    a = tmp_path / "a.json"
+    b = tmp_path / "b.json"
+    a.write_text(json.dumps({"contenders": {}}))
+    b.write_text(json.dumps(_result({"covers": _entry(True, 1000, 10.0)})))
+    res = _learn("--merge", str(a), str(b), timeout=120)
+    assert res.returncode == 2 and "not a bench learn result" in res.stderr and "a.json" in res.stderr, res.stderr
 
 
 def test_merge_names_a_missing_or_corrupt_file(tmp_path):

@@ -581,22 +581,24 @@ def merge_results(results: Sequence[Mapping[str, Any]], sources: Sequence[str] |
     if not results:
         raise ValueError("nothing to merge")
     first = results[0]
-    merged: dict[str, Any] = {key: first[key] for key in _MERGE_KEYS}
-    merged["contenders"] = {}
+    joined: dict[str, Any] = {}
     for name, res in zip(names, results):
         missing = [k for k in (*_MERGE_KEYS, "contenders") if k not in res]
         if missing:
             raise ValueError(f"{name}: not a bench learn result (no {', '.join(missing)})")
+        entries = res["contenders"]
+        if not isinstance(entries, Mapping) or not all(isinstance(e, Mapping) for e in entries.values()):
+            raise ValueError(f"{name}: not a bench learn result (contenders is not an object of objects)")
         for key in _MERGE_KEYS:
             if res[key] != first[key]:
                 raise ValueError(f"{name}: {key} {res[key]!r} differs from {names[0]}'s {first[key]!r}")
-        for contender, entry in res["contenders"].items():
-            if contender in merged["contenders"]:
+        for contender, entry in entries.items():
+            if contender in joined:
                 raise ValueError(f"{name}: contender {contender!r} appears in more than one result")
             own = {k: res[k] for k in ("budget", "config", "overrides", "seed") if k in res}
-            merged["contenders"][contender] = {**entry, **own}
-    merged["merged_from"] = names
-    merged["ratios"] = ratios(merged["contenders"])
+            joined[contender] = {**entry, **own}
+    merged: dict[str, Any] = {key: first[key] for key in _MERGE_KEYS}
+    merged.update(contenders=joined, merged_from=names, ratios=ratios(joined))
     return merged
 
 
