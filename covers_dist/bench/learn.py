@@ -642,10 +642,9 @@ def _merge(args: argparse.Namespace) -> int:
 
 # ---- the benchmark ---------------------------------------------------------------------------
 def run(args: argparse.Namespace) -> int:
-    from ..config import load_config
-
     if getattr(args, "merge", None):
         return _merge(args)
+    from ..config import load_config
     from ..envs import task_names
     from ..symmetry import get_group
 
