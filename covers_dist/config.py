@@ -109,6 +109,12 @@ class NetworkConfig:
         "equivariant; every block then runs on a k times smaller map, about k^2 fewer FLOPs). 1: off.",
     )
     init_log_std: float = _f(-0.5, "Initial log standard deviation of the Gaussian policy.")
+    proprio_norm: bool = _f(
+        False,
+        "Feed (proprio - shift) * scale with the task family's fixed statistics (Meta-World: hand position in "
+        "tenths of a metre about the table's centre, gripper opening to -1..1; docs/models.md). Planar pairs "
+        "take one scale and no shift, so equivariance stays exact. false: the raw proprio (older runs).",
+    )
     cnn_width: float | None = _f(
         None,
         "CNN twin channels = round(channels[i] * cnn_width); null: sqrt(|group|), a similar parameter count.",

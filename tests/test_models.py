@@ -305,3 +305,42 @@ def test_space_to_depth_cuts_the_work_and_block_sizes_validate():
             model(obs)
         counts.append(counter.get_total_flops())
     assert counts[1] < counts[0] / 2.5  # about k^2 fewer FLOPs per sample
+
+
+def test_proprio_norm_feeds_shifted_scaled_proprio_and_stays_equivariant():
+    from covers_dist.envs import suite_layout
+
+    layout = suite_layout("metaworld", 64)
+    assert layout.has_proprio_stats
+    raw = build_actor_critic(NetworkConfig(), layout, seed=4)
+    normed = build_actor_critic(dataclasses.replace(NetworkConfig(), proprio_norm=True), layout, seed=4)
+    # the statistics are fixed buffers, not weights: both nets hold the same parameters
+    assert set(raw.get_weights()) == set(normed.get_weights())
+    normed.set_weights(raw.get_weights())
+    obs = random_obs(layout, 4, seed=5)
+    shift, scale = np.asarray(layout.proprio_shift, np.float32), np.asarray(layout.proprio_scale, np.float32)
+    pre = {"image": obs["image"], "proprio": ((obs["proprio"] - shift) * scale).astype(np.float32)}
+    with torch.no_grad():
+        mean_n, _, value_n = normed(to_torch(obs))
+        mean_r, _, value_r = raw(to_torch(pre))
+    np.testing.assert_allclose(mean_n.numpy(), mean_r.numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(value_n.numpy(), value_r.numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(normed.act(obs, deterministic=True)[0], raw.act(pre, deterministic=True)[0], atol=1e-5)
+    assert not np.allclose(mean_n.numpy(), raw(to_torch(obs))[0].detach().numpy(), atol=1e-6)
+    assert max_error(equivariance_errors(normed, obs)) < TOL
+    assert max_error(equivariance_errors(normed, obs, fast=True)) < TOL
+
+
+def test_proprio_statistics_are_checked_against_the_symmetry():
+    base = dict(image_size=32, proprio_dim=4, proprio_pairs=1, action_dim=2, action_pairs=1)
+    ObsLayout(**base, proprio_shift=(0.0, 0.0, 1.0, -2.0), proprio_scale=(3.0, 3.0, 0.5, 7.0))  # fine
+    with pytest.raises(ValueError, match="planar pair 0"):
+        ObsLayout(**base, proprio_shift=(0.1, 0.0, 0.0, 0.0), proprio_scale=(1.0, 1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="planar pair 0"):
+        ObsLayout(**base, proprio_shift=(0.0, 0.0, 0.0, 0.0), proprio_scale=(1.0, 2.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="4 entries each"):
+        ObsLayout(**base, proprio_shift=(0.0, 0.0), proprio_scale=(1.0, 1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="finite and > 0"):
+        ObsLayout(**base, proprio_shift=(0.0, 0.0, 0.0, 0.0), proprio_scale=(1.0, 1.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match="no[n]e"):
+        build_actor_critic(dataclasses.replace(NetworkConfig(), proprio_norm=True), toy_layout(32))

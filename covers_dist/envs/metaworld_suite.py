@@ -88,9 +88,20 @@ def metaworld_task_names() -> tuple[str, ...]:
     return tuple(TASKS)
 
 
+#: Fixed proprio statistics for ``network.proprio_norm``: the hand's (x, y) about the symmetry centre
+#: and its height about 0.15 m, in tenths of a metre (the view spans +-0.36 m, success radii are
+#: 2-7 cm: a few centimetres become a few tenths at the network's input); the gripper opening
+#: (0..1) to -1..1.
+PROPRIO_SHIFT = (0.0, 0.0, 0.15, 0.5)
+PROPRIO_SCALE = (10.0, 10.0, 10.0, 2.0)
+
+
 def metaworld_layout(image_size: int = 64) -> ObsLayout:
     """Observations: image + proprio [x, y, z, gripper] (one planar pair); actions (dx, dy, dz, grip)."""
-    return ObsLayout(image_size=image_size, proprio_dim=4, proprio_pairs=1, action_dim=4, action_pairs=1)
+    return ObsLayout(
+        image_size=image_size, proprio_dim=4, proprio_pairs=1, action_dim=4, action_pairs=1,
+        proprio_shift=PROPRIO_SHIFT, proprio_scale=PROPRIO_SCALE,
+    )  # fmt: skip
 
 
 def _check_image_size(image_size: Any) -> int:

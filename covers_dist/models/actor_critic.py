@@ -50,11 +50,19 @@ def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
 class ActorCritic(nn.Module):
     """A Gaussian actor-critic over ``layout``'s observations and actions (see module docs)."""
 
-    def __init__(self, core: nn.Module, layout: ObsLayout, init_log_std: float, kind: str) -> None:
+    def __init__(
+        self, core: nn.Module, layout: ObsLayout, init_log_std: float, kind: str, proprio_norm: bool = False
+    ) -> None:
         super().__init__()
         self.core = core
         self.layout = layout
         self.kind = kind
+        if proprio_norm and not layout.has_proprio_stats:
+            raise ValueError("network.proprio_norm needs a layout with proprio statistics; this task family has none")
+        self.proprio_norm = bool(proprio_norm)
+        if self.proprio_norm:  # fixed statistics, not weights (persistent=False: weights stay the parameters)
+            self.register_buffer("proprio_shift", torch.tensor(layout.proprio_shift, dtype=torch.float32), persistent=False)
+            self.register_buffer("proprio_scale", torch.tensor(layout.proprio_scale, dtype=torch.float32), persistent=False)
         self.feature_dim: int = int(core.feature_dim)
         pairs, scalars = layout.action_pairs, layout.action_scalars
         self.log_std_free = nn.Parameter(torch.full((pairs + scalars,), float(init_log_std)))
@@ -80,7 +88,10 @@ class ActorCritic(nn.Module):
             raise ValueError(f"obs['proprio'] must have shape ({image.shape[0]}, {p}), got {tuple(proprio.shape)}")
         device = self.log_std_free.device
         img = image.to(device).permute(0, 3, 1, 2).to(torch.float32).div_(255.0)
-        return img, proprio.to(device=device, dtype=torch.float32)
+        proprio = proprio.to(device=device, dtype=torch.float32)
+        if self.proprio_norm:
+            proprio = (proprio - self.proprio_shift) * self.proprio_scale
+        return img, proprio
 
     def _numpy_obs(self, obs_np: Mapping[str, Any]) -> dict[str, torch.Tensor]:
         if not isinstance(obs_np, Mapping) or "image" not in obs_np or "proprio" not in obs_np:
