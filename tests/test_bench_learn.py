@@ -292,6 +292,10 @@ def test_merge_joins_separate_invocations_and_recomputes_ratios(tmp_path):
         (_result([1, 2]), ["not a bench learn result", "contenders"]),
         (_result({"cnn": 3}), ["not a bench learn result", "contenders"]),
         ([1, 2], ["not a bench learn result"]),
+        (_result({"cnn": {"reached": False}}), ["'cnn'", "no curve"]),
+        (_result({"cnn": {**_entry(False, None, None), "curve": [{"env_steps": 0, "min_success": 0.0}]}}),
+         ["'cnn'", "curve point 0", "train_wall_s", "mean_success"]),
+        (_result({"cnn": {**_entry(False, None, None), "curve": [None]}}), ["curve point 0", "env_steps"]),
     ],
 )
 def test_merge_refuses_results_that_do_not_compare(tmp_path, second, words):

@@ -593,6 +593,7 @@ def merge_results(results: Sequence[Mapping[str, Any]], sources: Sequence[str] |
             if res[key] != first[key]:
                 raise ValueError(f"{name}: {key} {res[key]!r} differs from {names[0]}'s {first[key]!r}")
         for contender, entry in entries.items():
+            _check_curve(name, contender, entry)
             if contender in joined:
                 raise ValueError(f"{name}: contender {contender!r} appears in more than one result")
             own = {k: res[k] for k in ("budget", "config", "overrides", "seed") if k in res}
@@ -600,6 +601,27 @@ def merge_results(results: Sequence[Mapping[str, Any]], sources: Sequence[str] |
     merged: dict[str, Any] = {key: first[key] for key in _MERGE_KEYS}
     merged.update(contenders=joined, merged_from=names, ratios=ratios(joined))
     return merged
+
+
+#: What every point of a contender's curve carries (numbers), for the ratios and the plot.
+_POINT_KEYS = ("env_steps", "train_wall_s", "min_success", "mean_success")
+
+
+def _check_curve(name: str, contender: str, entry: Mapping[str, Any]) -> None:
+    """Raise ``ValueError`` unless ``entry["curve"]`` (when present) is a list of complete points."""
+    if "error" in entry and "curve" not in entry:  # a contender that failed carries its error, no curve
+        return
+    curve = entry.get("curve")
+    if not isinstance(curve, list):
+        raise ValueError(f"{name}: contender {contender!r} has no curve (a list of points)")
+    for i, point in enumerate(curve):
+        bad = [k for k in _POINT_KEYS if not isinstance(point, Mapping) or not _is_number(point.get(k))]
+        if bad:
+            raise ValueError(f"{name}: contender {contender!r}, curve point {i} lacks numeric {', '.join(bad)}")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _load_result(path: str) -> dict[str, Any]:
