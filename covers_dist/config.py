@@ -333,6 +333,10 @@ class Config:
         return DEFAULT_THRESHOLDS[self.clustering.metric] if t is None else t
 
 
+#: Suites whose observation layout carries fixed proprio statistics (``network.proprio_norm``).
+SUITES_WITH_PROPRIO_STATS = ("metaworld",)
+
+
 def _validate_cross_fields(cfg: Config) -> None:
     from .symmetry import get_group
 
@@ -351,6 +355,11 @@ def _validate_cross_fields(cfg: Config) -> None:
         )
     if any(c < 1 for c in cfg.network.channels):
         raise ConfigError(f"network.channels={cfg.network.channels}: every entry must be >= 1")
+    if cfg.network.proprio_norm and cfg.env.suite not in SUITES_WITH_PROPRIO_STATS:
+        raise ConfigError(
+            f"network.proprio_norm=true: env.suite={cfg.env.suite} has no proprio statistics "
+            f"(suites that have them: {list(SUITES_WITH_PROPRIO_STATS)})"
+        )
     from .models.equivariant import block_sizes  # plain arithmetic, no escnn import
 
     try:

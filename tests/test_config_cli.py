@@ -42,6 +42,8 @@ def test_overrides_parse_values_as_yaml():
         ({"ppo": {"minibatch_size": 1000}, "clustering": {"update_every": 2}}, r"ppo.minibatch_size=1000 exceeds"),
         ({"env": {"tasks": ["reach", "reach"]}}, r"duplicate task names"),
         ({"ppo": []}, r"ppo: expected a mapping"),
+        ({"network": {"proprio_norm": True}}, r"network.proprio_norm=true: env.suite=toy has no proprio statistics"),
+        ({"network": {"proprio_norm": "on"}}, r"network.proprio_norm: expected true or false"),
     ],
 )
 def test_bad_configs_name_the_field(data, match):

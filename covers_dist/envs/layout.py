@@ -14,9 +14,8 @@ and mirror and the networks stay exactly equivariant; invariant entries may take
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
