@@ -504,18 +504,21 @@ def test_what_if_restricted_to_the_passes_policies(runs):
 
     on, _ = runs
     service = load_saved_run(on, log=lambda *_: None).service
-    assert service.bank.policy_ids == [0, 1]
+    # how many policies the tiny run makes depends on the CPU's float rounding (2 or 3 seen): use them all
+    ids = list(service.bank.policy_ids)
+    assert len(ids) >= 2 and ids[0] == 0, ids
+    last = ids[-1]
     frames = toy_frames(service.cfg, "reach", 2)
-    both = service.what_if(frames, [0, 0])
-    assert set(map(int, both["distances"])) == {0, 1}
-    assert timeless(service.what_if(frames, [0, 0], [0, 1])) == timeless(both)
-    service.models.pop(1)  # an entry without weights, as between the bank's `assign` and the driver's publish
-    with pytest.raises(LookupError, match="no weights received yet for policy 1"):
+    every = service.what_if(frames, [0, 0])
+    assert set(map(int, every["distances"])) == set(ids)
+    assert timeless(service.what_if(frames, [0, 0], ids)) == timeless(every)
+    service.models.pop(last)  # an entry without weights, as between the bank's `assign` and the driver's publish
+    with pytest.raises(LookupError, match=f"no weights received yet for policy {last}"):
         service.what_if(frames, [0, 0])
     only = service.what_if(frames, [0, 0], [0])
     assert set(map(int, only["distances"])) == {0}
-    assert only["distances"] == {k: v for k, v in both["distances"].items() if int(k) == 0}
-    assert service.bank.policy_ids == [0, 1]  # the bank is as it was
+    assert only["distances"] == {k: v for k, v in every["distances"].items() if int(k) == 0}
+    assert service.bank.policy_ids == ids  # the bank is as it was
     with pytest.raises(LookupError, match="none of the policies"):
         service.what_if(frames, [0, 0], [7])
 
