@@ -3,9 +3,10 @@
 The default suite runs a short serial run (about a minute on 2 cores) and checks what holds for
 every run: the untrained policy never closes the drawer, and at every evaluation point the one
 equivariant policy scores exactly the same on all eight rotated and mirrored copies (the closed
-loop is equivariant). Whether 24k steps are already enough to succeed depends on float rounding
-(thread count, CPU): measured here, one run reached 1.00 on all 8 after 24k env steps and another
-0.00, so the learning itself is asserted by the slow test, with a budget that covers that spread
+loop is equivariant); the run stops early only when it has solved every transform. Whether 24k
+steps are already enough to succeed depends on float rounding (thread count, CPU): measured, runs
+reached 1.00 on all 8 after 8k or 24k env steps and others stayed at 0.00, so the
+learning itself is asserted by the slow test, with a budget that covers that spread
 (docs/learning.md: 40k env steps on Ray). The toy learning test (tests/test_learning.py) is the
 default suite's learning assertion.
 """
@@ -43,7 +44,10 @@ def _same_on_every_transform(curve: list[dict]) -> None:
 
 def test_drawer_close_run_scores_alike_on_every_transform(tmp_path):
     curve, _ = _learn(tmp_path, 24000, 8000)
-    assert [p["env_steps"] for p in curve] == [0, 8000, 16000, 24000]
+    steps = [p["env_steps"] for p in curve]
+    assert steps == [0, 8000, 16000, 24000][: len(steps)] and len(steps) >= 2, steps
+    if len(steps) < 4:  # stopped early: only because every transform reached the threshold
+        assert curve[-1]["min_success"] >= 0.9, curve[-1]
     assert curve[0]["mean_success"] == 0.0  # the untrained policy never closes the drawer
     _same_on_every_transform(curve)
     assert (tmp_path / "curves.png").is_file()
