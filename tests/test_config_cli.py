@@ -94,3 +94,16 @@ def test_demo_writes_grid(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--episodes", "1", "--image-size", "16"]) == 0
     assert (tmp_path / "toy_grid.png").stat().st_size > 0
     assert "mismatches (image or reward): 0" in capsys.readouterr().out
+
+
+def test_suites_with_proprio_statistics_agree_with_the_layouts():
+    """The config's list (checked without importing any suite) matches what each suite's layout carries."""
+    import typing
+
+    from covers_dist.config import SUITES_WITH_PROPRIO_STATS, EnvConfig
+    from covers_dist.envs import suite_layout
+
+    suites = typing.get_args(typing.get_type_hints(EnvConfig)["suite"])
+    assert set(SUITES_WITH_PROPRIO_STATS) <= set(suites)
+    for suite in suites:
+        assert suite_layout(suite, 64).has_proprio_stats == (suite in SUITES_WITH_PROPRIO_STATS), suite
