@@ -606,3 +606,51 @@ def test_ray_evaluation_executors_give_the_local_pass(runs, ray_local):
         assert [r[k] for k in ("agnostic_policy", "oracle_policy", "status")] == [
             t[k] for k in ("agnostic_policy", "oracle_policy", "status")
         ]
+
+
+# ---- methods side by side (`covers-dist compare`) ------------------------------------------------
+def test_compare_puts_methods_side_by_side_and_refuses_unlike_runs(runs, tmp_path, capsys):
+    import dataclasses
+
+    from covers_dist.commands.compare import load_runs
+    from covers_dist.evaluation.compare import check_comparable
+
+    on, off = runs
+    equi = tmp_path / "equi"
+    train(equi, "runtime.method=equi", "eval.every_iterations=2", "eval.tasks=[reach,push]")
+    before = snapshot(on)
+    out = tmp_path / "cmp"
+    capsys.readouterr()
+    assert main(["compare", str(on), str(equi), "--out", str(out), "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert snapshot(on) == before  # read-only
+    assert [r["label"] for r in data["runs"]] == ["covers", "equi"]
+    held = sorted([r["task"], r["g"]] for r in read_passes(on)[-1]["pairs"] if r["status"] == "held_out")
+    assert data["tasks"] == TASKS and data["held_out"] == held and held
+    for r, run_dir in zip(data["runs"], (on, equi)):
+        cl = continual_metrics(read_passes(run_dir))  # each row is the run's own metrics, not recomputed otherwise
+        assert r["env_steps"] == cl["env_steps"] == 600 and r["passes"] == cl["passes"] == 2
+        assert r["success"] == {t: g["success"] for t, g in cl["groups"].items()}
+        assert r["average_success"] == cl["average_success"]
+        assert r["zero_shot_success"] == cl["zero_shot_success"]
+    assert data["runs"][1]["policies"] == 1 and data["runs"][0]["policies"] >= 2  # equi: one policy for all
+    md = (out / "compare.md").read_text()
+    assert "| covers | 0 | 600 |" in md and "| equi | 0 | 600 |" in md
+    assert (out / "compare_success.png").stat().st_size > 10_000
+    # the same run twice, a run without passes, a missing directory: clear errors, nothing written
+    for args, match in (
+        ([str(on), str(on)], "is given twice"),
+        ([str(on), str(off)], r"eval\.jsonl does not exist"),
+        ([str(tmp_path / "nope")], "does not exist"),
+    ):
+        with pytest.raises(SystemExit, match=match):
+            main(["compare", *args, "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()
+    # runs of different streams are refused, naming the field
+    a, b = load_runs([on, equi])
+    check_comparable([a, b])
+    with pytest.raises(ValueError, match="max_episode_steps is 30 there and 25 here"):
+        check_comparable([a, dataclasses.replace(b, max_episode_steps=30)])
+    pairs = [dict(r, status="held_out") if r["status"] == "seen" else r for r in b.passes[-1]["pairs"]]
+    with pytest.raises(ValueError, match="held_out is"):
+        check_comparable([a, dataclasses.replace(b, passes=[{**b.passes[-1], "pairs": pairs}])])

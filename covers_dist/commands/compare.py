@@ -1,0 +1,131 @@
+"""``covers-dist compare RUN_DIR RUN_DIR ...``: methods side by side on one stream.
+
+Each run directory is one method's run (``runtime.method``: covers, covers-gt, covers-cnn, equi,
+cnn) with evaluation passes (``eval.every_iterations`` during training, or ``covers-dist eval``).
+Writes ``OUT/compare.md`` (one row per run: per-group greedy success over the trainable
+transforms, average, zero-shot success on the held-out pairs, forgetting, policies, ARI, env steps;
+the paper's COVERS row beside them) and ``OUT/compare_success.png`` (evaluation success over env
+steps, one panel per group and one for the average, one line per run). Runs must share the suite,
+tasks, symmetry group, episode length and held-out pairs; the first difference is named.
+docs/RESULTS.md shows the table for the paper's stream at a CPU scale.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "compare",
+        help="methods side by side: one table and one figure from several runs of one stream",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories with evaluation passes")
+    p.add_argument("--out", default="runs/compare", help="where compare.md and compare_success.png go")
+    p.add_argument("--json", action="store_true", help="print the table's content as JSON instead of Markdown")
+    p.set_defaults(func=run)
+
+
+def load_runs(run_dirs: Sequence[str | Path]) -> list[Any]:
+    """:class:`~covers_dist.evaluation.compare.RunResults` of each run directory, labelled."""
+    from ..evaluation import read_passes
+    from ..evaluation.compare import RunResults, run_label
+    from ..runtime.saved_run import load_saved_run
+
+    runs: list[RunResults] = []
+    seen_dirs: set[Path] = set()
+    for d in run_dirs:
+        path = Path(d)
+        if path.resolve() in seen_dirs:
+            raise ValueError(f"{path} is given twice")
+        seen_dirs.add(path.resolve())
+        saved = load_saved_run(path, log=lambda m: print(m, file=sys.stderr))
+        cfg = saved.cfg
+        r = RunResults(
+            path=str(path),
+            method=cfg.runtime.method,
+            seed=int(cfg.seed),
+            suite=cfg.env.suite,
+            tasks=list(cfg.env.tasks),
+            group=cfg.env.group,
+            max_episode_steps=int(cfg.env.max_episode_steps),
+            passes=read_passes(path, missing_ok=False),
+            bank=saved.service.metrics(),
+        )
+        r.label = run_label(r.method, path.name, [x.label for x in runs])
+        runs.append(r)
+    return runs
+
+
+def plot_comparison(runs: Sequence[Any], out: Path) -> Path:
+    """``out/compare_success.png``: success over env steps, a panel per group and the average."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from ..evaluation.compare import success_curve
+    from ..evaluation.report import PAPER_SUCCESS
+
+    tasks = list(runs[0].tasks)
+    panels = [*tasks, None]
+    cols = min(len(panels), 3)
+    nrows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.2 * nrows), squeeze=False)
+    for ax, task in zip(axes.flat, panels):
+        for r in runs:
+            steps, values = success_curve(r, task)
+            ax.plot(steps, [np.nan if v is None else v for v in values], "o-", ms=3, label=r.label)
+        name = "average over groups seen" if task is None else PAPER_SUCCESS.get(task, (task,))[0]
+        ax.set(title=name, xlabel="env steps", ylabel="greedy success", ylim=(-0.05, 1.05))
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(panels) :]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=8)
+    fig.suptitle("evaluation success per method (policy chosen by the bank; trainable transforms)")
+    fig.tight_layout()
+    path = out / "compare_success.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..evaluation.compare import compare_table, comparison_json
+    from ..runtime.checkpoint import CheckpointError
+
+    try:
+        runs = load_runs(args.run_dirs)
+        data = comparison_json(runs)
+        table = compare_table(runs)
+    except (FileNotFoundError, CheckpointError, ValueError) as e:
+        raise SystemExit(f"covers-dist compare: {e}") from None
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    budget = ", ".join(f"{r['label']} {r['env_steps']} env steps (iteration {r['iteration']})" for r in data["runs"])
+    text = "\n".join(
+        [
+            "# Methods side by side",
+            "",
+            f"- stream: suite `{data['suite']}`, group {data['group']}, tasks {data['tasks']}; "
+            f"held-out pairs {[tuple(p) for p in data['held_out']]}",
+            f"- latest evaluation pass of each run: {budget}",
+            "- success: greedy, mean over each group's trainable (task, g) pairs, policy chosen by the bank; "
+            "how to read it: docs/RESULTS.md",
+            "",
+            table,
+            "",
+        ]
+    )
+    (out / "compare.md").write_text(text)
+    fig = plot_comparison(runs, out)
+    print(json.dumps(data, indent=2) if args.json else text)
+    print(f"written to {out / 'compare.md'} and {fig}", file=sys.stderr)
+    return 0
