@@ -635,7 +635,7 @@ def test_compare_puts_methods_side_by_side_and_refuses_unlike_runs(runs, tmp_pat
         assert r["zero_shot_success"] == cl["zero_shot_success"]
     assert data["runs"][1]["policies"] == 1 and data["runs"][0]["policies"] >= 2  # equi: one policy for all
     md = (out / "compare.md").read_text()
-    assert "| covers | 0 | 600 |" in md and "| equi | 0 | 600 |" in md
+    assert "| covers | 0 | 600 |" in md and "| equi | 0 | 600 |" in md and "| 1 | n/a (one policy) |" in md
     assert (out / "compare_success.png").stat().st_size > 10_000
     # the same run twice, a run without passes, a missing directory: clear errors, nothing written
     for args, match in (

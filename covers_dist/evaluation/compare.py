@@ -112,6 +112,11 @@ def comparison_json(runs: Sequence[RunResults]) -> dict[str, Any]:
     }
 
 
+def _ari(row: dict[str, Any], tasks: Sequence[str]) -> str:
+    """The ARI cell; one policy for several groups has ARI 0 by definition, which says nothing."""
+    return "n/a (one policy)" if row["policies"] == 1 and len(tasks) > 1 else _f(row["ari"])
+
+
 def compare_table(runs: Sequence[RunResults], paper: bool = True) -> str:
     """A Markdown table: one row per run (and the paper's COVERS row when the tasks are the paper's)."""
     data = comparison_json(runs)
@@ -124,7 +129,7 @@ def compare_table(runs: Sequence[RunResults], paper: bool = True) -> str:
         rows.append(
             [r["label"], str(r["seed"]), str(r["env_steps"])]
             + [r["success"].get(t) for t in tasks]
-            + [r["average_success"], r["zero_shot_success"], r["average_forgetting"], str(r["policies"]), _f(r["ari"])]
+            + [r["average_success"], r["zero_shot_success"], r["average_forgetting"], str(r["policies"]), _ari(r, tasks)]
         )
     if paper and all(t in PAPER_SUCCESS for t in tasks):
         rows.append(
