@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         runs = load_runs(args.run_dirs)
         data = comparison_json(runs)
-        table = compare_table(runs)
+        table = compare_table(data)
     except (FileNotFoundError, CheckpointError, ValueError) as e:
         raise SystemExit(f"covers-dist compare: {e}") from None
     out = Path(args.out)

@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Sequence
 
-from .metrics import continual_metrics, pass_summary
+from .metrics import continual_metrics, group_success, pass_summary
 from .report import PAPER_AVERAGE, PAPER_SUCCESS, _f, markdown_table
 
 __all__ = ["RunResults", "check_comparable", "compare_table", "comparison_json", "run_label", "success_curve"]
@@ -74,9 +74,8 @@ def success_curve(run: RunResults, task: str | None = None) -> tuple[list[float]
     """(env steps, success) at every pass: one group's (``task``) or the average over groups seen."""
     steps, values = [], []
     for ev in run.passes:
-        s = pass_summary(ev)
         steps.append(float(ev.get("env_steps") or 0))
-        values.append(s["average_success"] if task is None else s["groups"].get(task, {}).get("success"))
+        values.append(pass_summary(ev)["average_success"] if task is None else group_success(ev, task))
     return steps, values
 
 
@@ -117,9 +116,9 @@ def _ari(row: dict[str, Any], tasks: Sequence[str]) -> str:
     return "n/a (one policy)" if row["policies"] == 1 and len(tasks) > 1 else _f(row["ari"])
 
 
-def compare_table(runs: Sequence[RunResults], paper: bool = True) -> str:
-    """A Markdown table: one row per run (and the paper's COVERS row when the tasks are the paper's)."""
-    data = comparison_json(runs)
+def compare_table(data: dict[str, Any], paper: bool = True) -> str:
+    """A Markdown table of :func:`comparison_json`'s ``data``: one row per run (and the paper's COVERS
+    row when the tasks are the paper's)."""
     tasks = data["tasks"]
     names = [PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]
     header = ["method", "seed", "env steps"] + names
