@@ -344,3 +344,17 @@ def test_proprio_statistics_are_checked_against_the_symmetry():
         ObsLayout(**base, proprio_shift=(0.0, 0.0, 0.0, 0.0), proprio_scale=(1.0, 1.0, 0.0, 1.0))
     with pytest.raises(ValueError, match="no[n]e"):
         build_actor_critic(dataclasses.replace(NetworkConfig(), proprio_norm=True), toy_layout(32))
+
+
+@pytest.mark.parametrize("kind", ["equivariant", "cnn"])
+def test_bf16_update_forward_keeps_log_probs_in_fp32(nets, kind):
+    """The learner's bf16 autocast forward must not shift the PPO ratio: its log-probs are fp32 and
+    match the fp32 rollout's to well below an update's policy change (approximate KL ~1e-3)."""
+    model = nets[("metaworld64", kind)]
+    obs = random_obs(METAWORLD_LAYOUT, 16, seed=5)
+    actions, lp_rollout, _ = model.act(obs, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        logp, _, _ = model.evaluate_actions(to_torch(obs), torch.from_numpy(actions))
+    assert logp.dtype == torch.float32
+    logratio = logp.numpy() - lp_rollout
+    assert np.abs(logratio).max() < 1e-3, np.abs(logratio).max()
