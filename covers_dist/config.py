@@ -109,6 +109,13 @@ class NetworkConfig:
         "equivariant; every block then runs on a k times smaller map, about k^2 fewer FLOPs). 1: off.",
     )
     init_log_std: float = _f(-0.5, "Initial log standard deviation of the Gaussian policy.")
+    action_mean: Literal["tanh", "linear"] = _f(
+        "tanh",
+        "The Gaussian's mean: tanh of the policy head's output, inside the action box [-1, 1] (tanh is odd, so "
+        "it commutes with the D4 signed permutations of (dx, dy): equivariance stays exact), or linear: the "
+        "head's output itself (older runs; its mean can drift far outside the box, where the env's clipping "
+        "makes those entries' gradient pure noise: docs/learning.md).",
+    )
     proprio_norm: bool = _f(
         False,
         "Feed (proprio - shift) * scale with the task family's fixed statistics (Meta-World: hand position in "
@@ -139,6 +146,12 @@ class PPOConfig:
     epochs: int = _f(4, "Optimization epochs per update.", min=1)
     minibatch_size: int = _f(256, "Samples per minibatch.", min=1)
     max_grad_norm: float = _f(0.5, "Gradient-norm clip.", gt=0.0)
+    bound_coef: float = _f(
+        0.0,
+        "Weight of a soft bound on the Gaussian's mean, sum_i relu(|mu_i| - 1.1)^2 (rl_games' bounds loss): keeps a "
+        "linear mean (network.action_mean=linear) near the action box [-1, 1]; 0: off.",
+        min=0.0,
+    )
     target_kl: float | None = _f(None, "Stop the epochs early once approx-KL exceeds this (null: never).")
     norm_adv: bool = _f(True, "Normalize advantages per minibatch.")
     total_updates: int = _f(1000, "Horizon of the linear learning-rate schedule, in updates.", min=1)
@@ -531,23 +544,41 @@ def apply_overrides(data: dict[str, Any], overrides: list[str] | None) -> dict[s
     return data
 
 
+def _read_yaml(path: str | Path) -> dict[str, Any]:
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file {str(p)!r} does not exist")
+    try:
+        loaded = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config file {str(p)!r} is not valid YAML: {e}") from e
+    if loaded is None:
+        loaded = {}
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"config file {str(p)!r} must hold a mapping at the top level")
+    return loaded
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
     """Load a YAML config (or the defaults when ``path`` is None) and apply overrides."""
-    data: dict[str, Any] = {}
-    if path is not None:
-        p = Path(path)
-        if not p.is_file():
-            raise ConfigError(f"config file {str(p)!r} does not exist")
-        try:
-            loaded = yaml.safe_load(p.read_text())
-        except yaml.YAMLError as e:
-            raise ConfigError(f"config file {str(p)!r} is not valid YAML: {e}") from e
-        if loaded is None:
-            loaded = {}
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"config file {str(p)!r} must hold a mapping at the top level")
-        data = loaded
+    data: dict[str, Any] = {} if path is None else _read_yaml(path)
     return config_from_dict(apply_overrides(data, overrides))
+
+
+#: Fields added after runs were first saved, with the value such a run used: a run's config.yaml
+#: holds every field of its day, so one it lacks predates the field (and today's default would
+#: change what the run's checkpoints do).
+SAVED_RUN_DEFAULTS: dict[tuple[str, str], Any] = {("network", "action_mean"): "linear"}
+
+
+def load_run_config(path: str | Path) -> Config:
+    """A run's saved config.yaml; fields it predates take :data:`SAVED_RUN_DEFAULTS`."""
+    data = _read_yaml(path)
+    for (section, key), value in SAVED_RUN_DEFAULTS.items():
+        part = data.get(section)
+        if isinstance(part, dict) and key not in part:
+            part[key] = value
+    return config_from_dict(data)
 
 
 def describe(cls: type = Config, prefix: str = "") -> list[tuple[str, str, Any, str]]:

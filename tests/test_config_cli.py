@@ -44,6 +44,7 @@ def test_overrides_parse_values_as_yaml():
         ({"ppo": []}, r"ppo: expected a mapping"),
         ({"network": {"proprio_norm": True}}, r"network.proprio_norm=true: env.suite=toy has no proprio statistics"),
         ({"network": {"proprio_norm": "on"}}, r"network.proprio_norm: expected true or false"),
+        ({"network": {"action_mean": "sigmoid"}}, r"network.action_mean: expected one of"),
     ],
 )
 def test_bad_configs_name_the_field(data, match):
@@ -107,3 +108,25 @@ def test_suites_with_proprio_statistics_agree_with_the_layouts():
     assert set(SUITES_WITH_PROPRIO_STATS) <= set(suites)
     for suite in suites:
         assert suite_layout(suite, 64).has_proprio_stats == (suite in SUITES_WITH_PROPRIO_STATS), suite
+
+
+def test_a_saved_run_that_predates_a_field_keeps_the_value_it_ran_with(tmp_path):
+    """Runs saved before network.action_mean existed trained a linear mean: resuming, evaluating or
+    serving them must not switch them to today's tanh default."""
+    import yaml
+
+    from covers_dist.config import config_to_dict, load_run_config
+
+    data = config_to_dict(load_config())
+    assert data["network"]["action_mean"] == "tanh"
+    old = tmp_path / "old.yaml"
+    del data["network"]["action_mean"]
+    old.write_text(yaml.safe_dump(data))
+    assert load_config(old).network.action_mean == "tanh"  # a config to start from: today's default
+    assert load_run_config(old).network.action_mean == "linear"  # a saved run: what it ran with
+    data["network"]["action_mean"] = "tanh"
+    new = tmp_path / "new.yaml"
+    new.write_text(yaml.safe_dump(data))
+    assert load_run_config(new).network.action_mean == "tanh"
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_run_config(tmp_path / "nope.yaml")

@@ -654,3 +654,47 @@ def test_compare_puts_methods_side_by_side_and_refuses_unlike_runs(runs, tmp_pat
     pairs = [dict(r, status="held_out") if r["status"] == "seen" else r for r in b.passes[-1]["pairs"]]
     with pytest.raises(ValueError, match="held_out is"):
         check_comparable([a, dataclasses.replace(b, passes=[{**b.passes[-1], "pairs": pairs}])])
+
+
+def test_compare_across_seeds_averages_each_method_over_its_seeds(runs, tmp_path, capsys):
+    """Seeds hold out different pairs: a plain compare refuses them and points at --across-seeds,
+    which keeps each run's own held-out pairs and adds mean +- std per method over its seeds."""
+    import shutil
+
+    on, _ = runs
+    equi = tmp_path / "equi"
+    train(equi, "runtime.method=equi", "eval.every_iterations=2", "eval.tasks=[reach,push]")
+    s1 = tmp_path / "covers-s1"
+    train(s1, "seed=1", "eval.every_iterations=2", "eval.tasks=[reach,push]")
+    held = {d: sorted([r["task"], r["g"]] for r in read_passes(d)[-1]["pairs"] if r["status"] == "held_out") for d in (on, s1)}
+    assert held[on] != held[s1]
+    with pytest.raises(SystemExit, match=r"held_out is .*--across-seeds"):
+        main(["compare", str(on), str(s1), "--out", str(tmp_path / "plain")])
+    capsys.readouterr()
+    out = tmp_path / "cmp"
+    assert main(["compare", str(on), str(equi), str(s1), "--across-seeds", "--out", str(out), "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["held_out"] is None
+    assert [r["held_out"] for r in data["runs"]] == [held[on], held[on], held[s1]]
+    assert [m["method"] for m in data["methods"]] == ["covers", "equi"]
+    covers, eq = data["methods"]
+    assert covers["seeds"] == [0, 1] and eq["seeds"] == [0]
+    rows = [r for r in data["runs"] if r["method"] == "covers"]
+    for key in ("average_success", "zero_shot_success", "env_steps"):
+        values = [r[key] for r in rows]
+        assert covers[key]["mean"] == pytest.approx(np.mean(values))
+        assert covers[key]["std"] == pytest.approx(np.std(values, ddof=1))
+        assert covers[key]["n"] == 2
+    for t in TASKS:
+        got = [r["success"].get(t) for r in rows if r["success"].get(t) is not None]
+        assert (covers["success"][t] or {}).get("n", 0) == len(got)
+    assert eq["average_success"]["std"] == 0.0 and eq["policies"]["mean"] == 1
+    md = (out / "compare.md").read_text()
+    assert "## Per method, mean +- standard deviation over seeds" in md and "| covers | 0, 1 |" in md
+    assert "| equi | 0 |" in md and "n/a (one policy)" in md and "held-out pairs per run" in md
+    # one method twice with one seed would count that seed twice: refused, nothing written
+    twin = tmp_path / "covers-again"
+    shutil.copytree(on, twin)
+    with pytest.raises(SystemExit, match="both covers with seed 0"):
+        main(["compare", str(on), str(twin), "--across-seeds", "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()

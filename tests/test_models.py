@@ -331,6 +331,45 @@ def test_proprio_norm_feeds_shifted_scaled_proprio_and_stays_equivariant():
     assert max_error(equivariance_errors(normed, obs, fast=True)) < TOL
 
 
+@pytest.mark.parametrize("kind", ["equivariant", "cnn"])
+def test_tanh_action_mean_stays_in_the_box_and_keeps_equivariance(kind):
+    """The Gaussian's mean is tanh of the head's output: inside [-1, 1] however large the output grows
+    (a linear mean drifts far outside the box the env clips to), on the module and the fast path, and
+    the equivariant net stays exactly equivariant (tanh is odd: it commutes with D4's signed
+    permutations of (dx, dy))."""
+    layout = METAWORLD_LAYOUT
+    cfg = NetworkConfig(channels=[2, 2, 2, 2], hidden=4)
+    assert cfg.action_mean == "tanh"
+    tanh = build_actor_critic(cfg, layout, kind=kind, seed=6)
+    linear = build_actor_critic(dataclasses.replace(cfg, action_mean="linear"), layout, kind=kind, seed=6)
+    with torch.no_grad():  # a head grown large, as the runaway runs' heads did (means of 10-24)
+        for net in (tanh, linear):
+            for name, p in net.core.named_parameters():
+                if "policy" in name:
+                    p.mul_(3000.0)
+    assert set(tanh.get_weights()) == set(linear.get_weights())
+    obs = random_obs(layout, 6, seed=7)
+    with torch.no_grad():
+        mean_t, log_std_t, value_t = tanh(to_torch(obs))
+        mean_l, log_std_l, value_l = linear(to_torch(obs))
+    assert float(mean_l.abs().max()) > 2.0  # the raw output leaves the action box
+    np.testing.assert_allclose(mean_t.numpy(), np.tanh(mean_l.numpy()), rtol=1e-5, atol=1e-6)
+    assert float(mean_t.abs().max()) <= 1.0
+    np.testing.assert_array_equal(value_t.numpy(), value_l.numpy())
+    np.testing.assert_array_equal(log_std_t.numpy(), log_std_l.numpy())
+    greedy, logp, _ = tanh.act(obs, deterministic=True)  # the rollout path bounds the mean the same way
+    np.testing.assert_allclose(greedy, mean_t.numpy(), atol=1e-5)
+    sampled = tanh.act(obs, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        logp_module = tanh.evaluate_actions(to_torch(obs), torch.from_numpy(sampled[0]))[0].numpy()
+    np.testing.assert_allclose(sampled[1], logp_module, rtol=1e-4, atol=1e-4)
+    if kind == "equivariant":
+        assert max_error(equivariance_errors(tanh, obs)) < TOL
+        assert max_error(equivariance_errors(tanh, obs, fast=True)) < TOL
+    with pytest.raises(ValueError, match="action_mean must be one of"):
+        ActorCritic(tanh.core, layout, -0.5, kind, action_mean="sigmoid")
+
+
 def test_proprio_statistics_are_checked_against_the_symmetry():
     base = dict(image_size=32, proprio_dim=4, proprio_pairs=1, action_dim=2, action_pairs=1)
     ObsLayout(**base, proprio_shift=(0.0, 0.0, 1.0, -2.0), proprio_scale=(3.0, 3.0, 0.5, 7.0))  # fine

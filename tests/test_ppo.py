@@ -175,6 +175,46 @@ def test_nan_loss_or_gradient_skips_the_step_and_keeps_weights():
     assert learner.update(episodes)["skipped_steps"] == 0  # and it recovers
 
 
+def test_bound_loss_is_zero_in_the_box_quadratic_beyond_and_invariant():
+    from covers_dist.ppo.loss import SOFT_BOUND, bound_loss
+
+    mean = torch.tensor([[0.3, -1.0, 1.1, -0.2], [1.6, -2.1, 0.0, 0.9]])
+    expected = ((1.6 - SOFT_BOUND) ** 2 + (2.1 - SOFT_BOUND) ** 2) / 2  # mean over rows of the sum over entries
+    assert float(bound_loss(mean)) == pytest.approx(expected)
+    assert float(bound_loss(mean[:1])) == 0.0
+    # a D4 element on (dx, dy) is a signed permutation: the penalty does not change
+    moved = torch.stack([-mean[:, 1], mean[:, 0], mean[:, 2], mean[:, 3]], dim=1)
+    assert float(bound_loss(moved)) == pytest.approx(expected)
+    # ppo_loss adds it with its weight, and only with a mean given
+    z = torch.zeros(4)
+    base = ppo_loss(z, z, z, z, z, z, z, 0.2, None, 0.0, 0.5)
+    with_bound = ppo_loss(z, z, z, z, z, z, z, 0.2, None, 0.0, 0.5, mean=torch.cat([mean, mean]), bound_coef=2.0)
+    assert float(with_bound.loss - base.loss) == pytest.approx(2.0 * expected)
+    assert with_bound.bound_loss == pytest.approx(expected) and base.bound_loss == 0.0
+
+
+def test_a_linear_mean_outside_the_box_is_reported_and_pulled_back_by_the_bound():
+    """The runaway this guards against: a linear mean far outside [-1, 1] (where the env's clipping
+    makes the sampled noise carry no signal). ``mean_out_of_box`` reports it; ``bound_coef`` pulls
+    the mean back towards the box."""
+    net = dataclasses.replace(SMALL_NET, action_mean="linear")
+    out = {}
+    for coef in (0.0, 1.0):
+        model = build_actor_critic(net, LAYOUT, seed=3)
+        with torch.no_grad():  # a head grown large: most mean entries far outside the box
+            for p in model.core.policy_head.parameters():
+                p.mul_(1e5)
+        episodes = make_episodes(model)
+        learner = PPOLearner(model, PPOConfig(epochs=4, minibatch_size=24, lr=3e-3, bound_coef=coef))
+        first = learner.update(episodes)  # measured on the data before this update's first step
+        assert first["mean_out_of_box"] > 0.5
+        for _ in range(5):
+            stats = learner.update(episodes)
+        out[coef] = stats
+    assert out[1.0]["bound_loss"] > 0.0 and out[0.0]["bound_loss"] == 0.0
+    assert out[1.0]["mean_out_of_box"] < out[0.0]["mean_out_of_box"]
+
+
 def test_target_kl_stops_early():
     model = make_model()
     learner = PPOLearner(model, PPOConfig(epochs=4, minibatch_size=8, lr=1e-2, target_kl=1e-6))

@@ -36,7 +36,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Callable
 
-from ..config import Config, load_config
+from ..config import Config, load_config, load_run_config
 from ..runtime.processes import list_processes, running
 
 KINDS = ("worker", "learner", "clustering", "api", "driver")
@@ -87,7 +87,7 @@ def final_state(run_dir: Path) -> dict[str, Any]:
     ckpt = latest_valid_checkpoint(run_dir, log=lambda *_: None)
     if ckpt is None:
         raise RuntimeError(f"{run_dir} has no valid checkpoint")
-    cfg = load_config(ckpt / "config.yaml")
+    cfg = load_run_config(ckpt / "config.yaml")
     service = ClusteringService(cfg, read_only=True)
     service.load(str(ckpt / "bank"))
     records = service.assignments(0, 10**9)

@@ -7,7 +7,9 @@ transforms, average, zero-shot success on the held-out pairs, forgetting, polici
 the paper's COVERS row beside them) and ``OUT/compare_success.png`` (evaluation success over env
 steps, one panel per group and one for the average, one line per run). Runs must share the suite,
 tasks, symmetry group, episode length and held-out pairs; the first difference is named.
-docs/RESULTS.md shows the table for the paper's stream at a CPU scale.
+``--across-seeds`` compares runs of several seeds (which hold out different pairs: each row's
+held-out column is its own pairs') and adds a table with one row per method, the mean +- standard
+deviation over its seeds. docs/RESULTS.md shows the table for the paper's stream at a CPU scale.
 """
 
 from __future__ import annotations
@@ -29,6 +31,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories with evaluation passes")
     p.add_argument("--out", default="runs/compare", help="where compare.md and compare_success.png go")
     p.add_argument("--json", action="store_true", help="print the table's content as JSON instead of Markdown")
+    p.add_argument(
+        "--across-seeds",
+        action="store_true",
+        help="runs of several seeds (their held-out pairs may differ): add mean +- std per method",
+    )
     p.set_defaults(func=run)
 
 
@@ -98,24 +105,33 @@ def plot_comparison(runs: Sequence[Any], out: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..evaluation.compare import compare_table, comparison_json
+    from ..evaluation.compare import compare_table, comparison_json, methods_table
     from ..runtime.checkpoint import CheckpointError
 
     try:
         runs = load_runs(args.run_dirs)
-        data = comparison_json(runs)
-        table = compare_table(data)
+        data = comparison_json(runs, across_seeds=args.across_seeds)
+        table = compare_table(data, paper=not args.across_seeds)
+        if args.across_seeds:
+            table = "\n".join(
+                ["## Per method, mean +- standard deviation over seeds", "", methods_table(data), "", "## Per run", "", table]
+            )
     except (FileNotFoundError, CheckpointError, ValueError) as e:
         raise SystemExit(f"covers-dist compare: {e}") from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if data["held_out"] is not None:
+        held = f"held-out pairs {[tuple(p) for p in data['held_out']]}"
+    else:
+        held = "held-out pairs per run: " + "; ".join(
+            f"{r['label']} seed {r['seed']} {[tuple(p) for p in r['held_out']]}" for r in data["runs"]
+        )
     budget = ", ".join(f"{r['label']} {r['env_steps']} env steps (iteration {r['iteration']})" for r in data["runs"])
     text = "\n".join(
         [
             "# Methods side by side",
             "",
-            f"- stream: suite `{data['suite']}`, group {data['group']}, tasks {data['tasks']}; "
-            f"held-out pairs {[tuple(p) for p in data['held_out']]}",
+            f"- stream: suite `{data['suite']}`, group {data['group']}, tasks {data['tasks']}; " + held,
             f"- latest evaluation pass of each run: {budget}",
             "- success: greedy, mean over each group's trainable (task, g) pairs, policy chosen by the bank; "
             "how to read it: docs/RESULTS.md",

@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _config(args: argparse.Namespace):  # noqa: ANN202
-    from ..config import ConfigError, apply_overrides, config_from_dict, config_to_dict, load_config
+    from ..config import ConfigError, apply_overrides, config_from_dict, config_to_dict, load_config, load_run_config
 
     overrides = list(args.overrides)
     if args.host is not None:
@@ -61,7 +61,7 @@ def _config(args: argparse.Namespace):  # noqa: ANN202
     run_cfg = Path(args.checkpoint) / "config.yaml"
     if not run_cfg.is_file():
         raise SystemExit(f"covers-dist serve: {args.checkpoint} is not a run directory (no config.yaml)")
-    data = config_to_dict(load_config(run_cfg))
+    data = config_to_dict(load_run_config(run_cfg))
     if args.config is not None:
         data["api"] = config_to_dict(load_config(args.config)).get("api", data["api"])
     bad = [o for o in overrides if not o.strip().startswith("api.")]

@@ -8,8 +8,11 @@ average forgetting, policies and ARI, and the env steps each run had.
 
 Runs are compared only when they share what decides a success: the suite, the task groups, the
 symmetry group, the episode length and the held-out pairs. :func:`check_comparable` names the first
-field that differs. Plain Python + numpy (:mod:`covers_dist.commands.compare` loads the runs and
-draws the curves).
+field that differs. Seeds of one stream draw different held-out pairs, so runs of several seeds are
+compared with ``across_seeds``: each run's held-out column is then its own pairs' zero-shot success,
+and :func:`aggregate_by_method` adds one row per method, the mean and standard deviation over its
+seeds (as the paper reports its 3 seeds). Plain Python + numpy (:mod:`covers_dist.commands.compare`
+loads the runs and draws the curves).
 """
 
 from __future__ import annotations
@@ -17,10 +20,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+import numpy as np
+
 from .metrics import continual_metrics, group_success, pass_summary
 from .report import PAPER_AVERAGE, PAPER_SUCCESS, _f, markdown_table
 
-__all__ = ["RunResults", "check_comparable", "compare_table", "comparison_json", "run_label", "success_curve"]
+__all__ = ["RunResults", "aggregate_by_method", "check_comparable", "compare_table", "comparison_json", "methods_table", "run_label", "success_curve"]
 
 
 @dataclass
@@ -52,21 +57,24 @@ def run_label(method: str, name: str, taken: Sequence[str]) -> str:
     return method if method not in taken else f"{method} ({name})"
 
 
-def check_comparable(runs: Sequence[RunResults]) -> None:
-    """Raise ``ValueError`` naming the first field in which a run differs from the first run."""
+def check_comparable(runs: Sequence[RunResults], across_seeds: bool = False) -> None:
+    """Raise ``ValueError`` naming the first field in which a run differs from the first run
+    (``across_seeds``: the held-out pairs may differ)."""
     if len(runs) < 1:
         raise ValueError("nothing to compare: give at least one run directory")
     for r in runs:
         if not r.passes:
             raise ValueError(f"{r.path} holds no evaluation pass: run `covers-dist eval {r.path}`")
     ref = runs[0]
+    fields = ("suite", "tasks", "group", "max_episode_steps") + (() if across_seeds else ("held_out",))
     for r in runs[1:]:
-        for field in ("suite", "tasks", "group", "max_episode_steps", "held_out"):
+        for field in fields:
             a, b = getattr(ref, field), getattr(r, field)
             if a != b:
+                hint = "" if across_seeds or field != "held_out" else "; runs of different seeds: --across-seeds"
                 raise ValueError(
                     f"{r.path} is not comparable with {ref.path}: {field} is {b!r} there and {a!r} here "
-                    "(compare runs of one stream: same suite, tasks, group, episode length and held-out pairs)"
+                    f"(compare runs of one stream: same suite, tasks, group, episode length and held-out pairs{hint})"
                 )
 
 
@@ -95,25 +103,106 @@ def _row(run: RunResults) -> dict[str, Any]:
         "average_forgetting": cl["average_forgetting"],
         "policies": int(run.bank.get("num_policies", 0)),
         "ari": run.bank.get("ari"),
+        "held_out": [list(p) for p in run.held_out],
     }
 
 
-def comparison_json(runs: Sequence[RunResults]) -> dict[str, Any]:
-    """The table's content as plain data (``--json``)."""
-    check_comparable(runs)
+def _mean_std(values: Sequence[Any]) -> dict[str, Any] | None:
+    """``{"mean", "std", "n"}`` of the values that exist (std with ddof 1; 0.0 for one value)."""
+    xs = np.array([float(v) for v in values if v is not None], dtype=float)
+    if xs.size == 0:
+        return None
+    return {"mean": float(xs.mean()), "std": float(xs.std(ddof=1)) if xs.size > 1 else 0.0, "n": int(xs.size)}
+
+
+def aggregate_by_method(rows: Sequence[dict[str, Any]], tasks: Sequence[str]) -> list[dict[str, Any]]:
+    """One entry per method (in order of first appearance): the mean and standard deviation over its
+    runs of every column of the table. A method given twice with one seed is refused (it would count
+    one seed twice)."""
+    by_method: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        same = [o for o in by_method.get(r["method"], []) if o["seed"] == r["seed"]]
+        if same:
+            raise ValueError(
+                f"{r['run_dir']} and {same[0]['run_dir']} are both {r['method']} with seed {r['seed']}: "
+                "averaging over seeds needs one run per method and seed"
+            )
+        by_method.setdefault(r["method"], []).append(r)
+    out = []
+    for method, rs in by_method.items():
+        col = lambda key: _mean_std([r[key] for r in rs])  # noqa: E731
+        out.append(
+            {
+                "method": method,
+                "seeds": [r["seed"] for r in rs],
+                "env_steps": col("env_steps"),
+                "success": {t: _mean_std([r["success"].get(t) for r in rs]) for t in tasks},
+                "average_success": col("average_success"),
+                "zero_shot_success": col("zero_shot_success"),
+                "average_forgetting": col("average_forgetting"),
+                "policies": col("policies"),
+                "ari": col("ari"),
+            }
+        )
+    return out
+
+
+def comparison_json(runs: Sequence[RunResults], across_seeds: bool = False) -> dict[str, Any]:
+    """The table's content as plain data (``--json``). With ``across_seeds`` the runs may hold out
+    different pairs (each row lists its own; the top-level ``held_out`` is then null) and
+    ``methods`` holds :func:`aggregate_by_method`'s rows."""
+    check_comparable(runs, across_seeds=across_seeds)
     ref = runs[0]
-    return {
+    rows = [_row(r) for r in runs]
+    same = all(r.held_out == ref.held_out for r in runs)
+    data = {
         "suite": ref.suite,
         "tasks": list(ref.tasks),
         "group": ref.group,
-        "held_out": [list(p) for p in ref.held_out],
-        "runs": [_row(r) for r in runs],
+        "held_out": [list(p) for p in ref.held_out] if same else None,
+        "runs": rows,
     }
+    if across_seeds:
+        data["methods"] = aggregate_by_method(rows, ref.tasks)
+    return data
 
 
 def _ari(row: dict[str, Any], tasks: Sequence[str]) -> str:
     """The ARI cell; one policy for several groups has ARI 0 by definition, which says nothing."""
     return "n/a (one policy)" if row["policies"] == 1 and len(tasks) > 1 else _f(row["ari"])
+
+
+def _pm(stat: dict[str, Any] | None) -> str:
+    return "n/a" if stat is None else f"{stat['mean']:.2f} +- {stat['std']:.2f}"
+
+
+def _paper_row(tasks: Sequence[str], lead: Sequence[str]) -> list[Any]:
+    return (
+        [*lead]
+        + [f"{PAPER_SUCCESS[t][1]:.2f} +- {PAPER_SUCCESS[t][2]:.2f}" for t in tasks]
+        + [f"{PAPER_AVERAGE[0]:.2f} +- {PAPER_AVERAGE[1]:.2f}", "n/a", "n/a", "n/a", "n/a"]
+    )
+
+
+def methods_table(data: dict[str, Any], paper: bool = True) -> str:
+    """A Markdown table of ``data["methods"]`` (:func:`comparison_json` with ``across_seeds``): one
+    row per method, mean +- standard deviation over its seeds (and the paper's COVERS row)."""
+    tasks = data["tasks"]
+    names = [PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]
+    header = ["method", "seeds", "env steps (mean)"] + names
+    header += ["average", "held-out (zero-shot)", "forgetting", "policies", "ARI"]
+    rows = []
+    for m in data["methods"]:
+        one_policy = m["policies"] is not None and m["policies"]["mean"] == 1 and len(tasks) > 1
+        rows.append(
+            [m["method"], ", ".join(str(s) for s in m["seeds"]), f"{m['env_steps']['mean']:.0f}"]
+            + [_pm(m["success"].get(t)) for t in tasks]
+            + [_pm(m[k]) for k in ("average_success", "zero_shot_success", "average_forgetting", "policies")]
+            + ["n/a (one policy)" if one_policy else _pm(m["ari"])]
+        )
+    if paper and all(t in PAPER_SUCCESS for t in tasks):
+        rows.append(_paper_row(tasks, ["COVERS, paper (~3M steps per group)", "3 seeds", ""]))
+    return markdown_table(header, rows)
 
 
 def compare_table(data: dict[str, Any], paper: bool = True) -> str:
@@ -131,9 +220,5 @@ def compare_table(data: dict[str, Any], paper: bool = True) -> str:
             + [r["average_success"], r["zero_shot_success"], r["average_forgetting"], str(r["policies"]), _ari(r, tasks)]
         )
     if paper and all(t in PAPER_SUCCESS for t in tasks):
-        rows.append(
-            ["COVERS, paper (3 seeds, ~3M steps per group)", "", ""]
-            + [f"{PAPER_SUCCESS[t][1]:.2f} +- {PAPER_SUCCESS[t][2]:.2f}" for t in tasks]
-            + [f"{PAPER_AVERAGE[0]:.2f} +- {PAPER_AVERAGE[1]:.2f}", "n/a", "n/a", "n/a", "n/a"]
-        )
+        rows.append(_paper_row(tasks, ["COVERS, paper (3 seeds, ~3M steps per group)", "", ""]))
     return markdown_table(header, rows)

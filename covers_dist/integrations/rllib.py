@@ -72,6 +72,7 @@ class CoversRLModule(TorchRLModule, ValueFunctionAPI):
         return self.net.core(img, proprio)
 
     def _dist_inputs(self, mean: torch.Tensor) -> torch.Tensor:
+        mean = self.net.policy_mean(mean)
         return torch.cat([mean, self.net.log_std().expand_as(mean)], dim=-1)
 
     def _forward(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:

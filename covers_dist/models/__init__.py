@@ -69,4 +69,6 @@ def _build(net_cfg: NetworkConfig, layout: ObsLayout, kind: str) -> ActorCritic:
         from .cnn import CNNCore
 
         core = CNNCore(layout, list(net_cfg.channels), net_cfg.hidden, cnn_width(net_cfg), net_cfg.space_to_depth)
-    return ActorCritic(core, layout, net_cfg.init_log_std, kind, proprio_norm=net_cfg.proprio_norm)
+    return ActorCritic(
+        core, layout, net_cfg.init_log_std, kind, proprio_norm=net_cfg.proprio_norm, action_mean=net_cfg.action_mean
+    )

@@ -8,6 +8,11 @@ Cores are ``nn.Module`` s with ``forward(image, proprio) -> (mean, value, featur
 tensors (image ``(B, 3, S, S)`` in [0, 1], proprio ``(B, P)``), a ``feature_dim`` attribute and
 ``export_fast()``, which returns a plain-torch copy for inference (same outputs, no autograd).
 
+The Gaussian's mean is ``tanh`` of the core's mean output (``action_mean="tanh"``), so it stays in
+the action box [-1, 1] that the environments clip to; ``"linear"`` uses the output as it is. tanh
+acts per entry and is odd, so it commutes with the signed permutations by which D4 and its
+subgroups act on a planar pair: an equivariant core stays exactly equivariant.
+
 The standard deviation is state independent and invariant: one log-std per planar action pair
 (shared by its x and y entries) and one per invariant action entry, so a rotation or mirror of the
 mean leaves the Gaussian's shape unchanged.
@@ -29,8 +34,10 @@ from torch import nn
 
 from ..envs.layout import ObsLayout
 
-__all__ = ["ActorCritic", "gaussian_log_prob", "gaussian_entropy", "FEATURE_CHUNK"]
+__all__ = ["ACTION_MEANS", "ActorCritic", "gaussian_log_prob", "gaussian_entropy", "FEATURE_CHUNK"]
 
+#: How the core's mean output becomes the Gaussian's mean (module docs).
+ACTION_MEANS = ("tanh", "linear")
 #: Observations per chunk in :meth:`ActorCritic.features_np` (bounds peak memory).
 FEATURE_CHUNK = 256
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -51,12 +58,21 @@ class ActorCritic(nn.Module):
     """A Gaussian actor-critic over ``layout``'s observations and actions (see module docs)."""
 
     def __init__(
-        self, core: nn.Module, layout: ObsLayout, init_log_std: float, kind: str, proprio_norm: bool = False
+        self,
+        core: nn.Module,
+        layout: ObsLayout,
+        init_log_std: float,
+        kind: str,
+        proprio_norm: bool = False,
+        action_mean: str = "tanh",
     ) -> None:
         super().__init__()
         self.core = core
         self.layout = layout
         self.kind = kind
+        if action_mean not in ACTION_MEANS:
+            raise ValueError(f"action_mean must be one of {list(ACTION_MEANS)}, got {action_mean!r}")
+        self.action_mean = action_mean
         if proprio_norm and not layout.has_proprio_stats:
             raise ValueError("network.proprio_norm needs a layout with proprio statistics; this task family has none")
         self.proprio_norm = bool(proprio_norm)
@@ -108,6 +124,10 @@ class ActorCritic(nn.Module):
         return {"image": torch.from_numpy(image), "proprio": torch.from_numpy(proprio)}
 
     # ---- policy ------------------------------------------------------------------------------
+    def policy_mean(self, raw: torch.Tensor) -> torch.Tensor:
+        """The Gaussian's mean from the core's mean output (``tanh`` or as is; module docs)."""
+        return torch.tanh(raw) if self.action_mean == "tanh" else raw
+
     def log_std(self) -> torch.Tensor:
         """Per-dimension log standard deviation (A,), tied within each planar pair."""
         return self.log_std_free[self.std_index]
@@ -117,7 +137,7 @@ class ActorCritic(nn.Module):
         img, proprio = self.prepare(obs)
         mean, value, _ = self.core(img, proprio)
         # fp32 out of a bf16 autocast forward: the Gaussian's log-probs (PPO's ratio) need fp32
-        mean, value = mean.float(), value.float()
+        mean, value = self.policy_mean(mean.float()), value.float()
         return mean, self.log_std().expand_as(mean), value
 
     def features(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
@@ -126,13 +146,16 @@ class ActorCritic(nn.Module):
         return self.core(img, proprio)[2]
 
     def evaluate_actions(
-        self, obs: Mapping[str, torch.Tensor], actions: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(log_prob (B,), entropy (B,), value (B,))`` of ``actions`` under the current policy."""
+        self, obs: Mapping[str, torch.Tensor], actions: torch.Tensor, return_mean: bool = False
+    ) -> tuple[torch.Tensor, ...]:
+        """``(log_prob (B,), entropy (B,), value (B,))`` of ``actions`` under the current policy
+        (``return_mean``: and the Gaussian's mean (B, A) last)."""
         mean, log_std, value = self(obs)
         if actions.shape != mean.shape:
             raise ValueError(f"actions must have shape {tuple(mean.shape)}, got {tuple(actions.shape)}")
         logp = gaussian_log_prob(actions.to(device=mean.device, dtype=mean.dtype), mean, log_std)
+        if return_mean:
+            return logp, gaussian_entropy(log_std), value, mean
         return logp, gaussian_entropy(log_std), value
 
     # ---- fast inference ----------------------------------------------------------------------
@@ -168,6 +191,7 @@ class ActorCritic(nn.Module):
         """
         img, proprio = self.prepare(self._numpy_obs(obs_np))
         mean, value, _ = self.fast_core()(img.contiguous(memory_format=torch.channels_last), proprio)
+        mean = self.policy_mean(mean)
         log_std = self.log_std().expand_as(mean)
         if deterministic:
             actions = mean

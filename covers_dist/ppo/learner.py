@@ -40,6 +40,7 @@ STAT_KEYS = (
     "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "grad_norm",
     "skipped_steps", "optimizer_steps", "epochs_completed", "early_stopped", "lr", "num_samples",
     "num_episodes", "episode_return_mean", "success_rate", "update_time_s", "samples_per_s", "update_count", "bf16", "reward_divisor",
+    "bound_loss", "mean_out_of_box",
 )  # fmt: skip
 
 
@@ -221,7 +222,8 @@ class PPOLearner:
             batch = {k: v.to(device) for k, v in batch.items()}
         was_training = self.model.training
         self.model.train()
-        sums = {k: 0.0 for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "grad_norm")}
+        sums = {k: 0.0 for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "grad_norm", "bound_loss")}
+        out_of_box = out_count = 0.0
         steps = skipped = epochs_done = processed = 0
         early = False
         num_mb = max(1, round(n / cfg.minibatch_size))
@@ -229,13 +231,17 @@ class PPOLearner:
             for idx in torch.tensor_split(torch.randperm(n, generator=self._rng).to(device), num_mb):
                 obs = {"image": batch["image"][idx], "proprio": batch["proprio"][idx]}
                 with torch.autocast(self._autocast_device, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-                    logp, entropy, values = self.model.evaluate_actions(obs, batch["action"][idx])
-                logp, entropy, values = logp.float(), entropy.float(), values.float()
+                    logp, entropy, values, mean = self.model.evaluate_actions(obs, batch["action"][idx], return_mean=True)
+                logp, entropy, values, mean = logp.float(), entropy.float(), values.float(), mean.float()
+                if epochs_done == 0:  # how much of the mean lies outside the action box, before this update
+                    out_of_box += float((mean.detach().abs() > 1.0).float().sum())
+                    out_count += mean.numel()
                 adv = batch["adv"][idx]
                 terms = ppo_loss(
                     logp, batch["logprob"][idx], normalize_advantages(adv) if cfg.norm_adv else adv,
                     values, batch["value"][idx], batch["ret"][idx], entropy,
                     cfg.clip_coef, cfg.vf_clip_coef, cfg.ent_coef, cfg.vf_coef,
+                    mean=mean, bound_coef=cfg.bound_coef,
                 )  # fmt: skip
                 processed += len(idx)
                 if cfg.target_kl is not None and terms.approx_kl > cfg.target_kl:
@@ -253,7 +259,7 @@ class PPOLearner:
                     continue
                 self.optimizer.step()
                 steps += 1
-                for key in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac"):
+                for key in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "bound_loss"):
                     sums[key] += getattr(terms, key)
                 sums["grad_norm"] += grad_norm
             if early:
@@ -281,6 +287,7 @@ class PPOLearner:
             update_count=self.update_count,
             bf16=self.precision == "bf16",
             reward_divisor=1.0 / scale,  # raw rewards are divided by this before GAE
+            mean_out_of_box=out_of_box / out_count if out_count else float("nan"),
         )
         return stats
 

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 import yaml
 
-from ..config import Config, config_to_dict, load_config
+from ..config import Config, config_to_dict, load_run_config
 from ..envs.stream import TaskStream
 from .checkpoint import latest_valid_checkpoint, write_checkpoint
 from .clustering_service import LIVE_DIR as CLUSTERING_LIVE_DIR
@@ -485,7 +485,7 @@ def train(
         cfg_path = Path(resume_dir) / "config.yaml"
         if not cfg_path.is_file():
             raise FileNotFoundError(f"{resume_dir} is not a run directory (no config.yaml)")
-        cfg = load_config(cfg_path)
+        cfg = load_run_config(cfg_path)
     assert cfg is not None
     run_dir = Path(cfg.runtime.run_dir)
     if resume_dir is None and (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").iterdir()):

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..config import Config, load_config
+from ..config import Config, load_run_config
 from .checkpoint import CheckpointError, latest_valid_checkpoint
 
 __all__ = ["SavedRun", "load_saved_run", "model_weights"]
@@ -64,7 +64,7 @@ def load_saved_run(run_dir: str | Path, log: Any = print) -> SavedRun:
     ckpt = latest_valid_checkpoint(run_dir, log=log)
     if ckpt is None:
         raise CheckpointError(f"{run_dir} has no valid checkpoint under checkpoints/ (has it trained one iteration?)")
-    cfg = load_config(ckpt / "config.yaml" if (ckpt / "config.yaml").is_file() else run_dir / "config.yaml")
+    cfg = load_run_config(ckpt / "config.yaml" if (ckpt / "config.yaml").is_file() else run_dir / "config.yaml")
     model = build_actor_critic(cfg.network, suite_layout(cfg.env.suite, cfg.env.image_size))
     names = {n for n, _ in model.named_parameters()}
     weights, versions = {}, {}
