@@ -698,3 +698,17 @@ def test_compare_across_seeds_averages_each_method_over_its_seeds(runs, tmp_path
     with pytest.raises(SystemExit, match="both covers with seed 0"):
         main(["compare", str(on), str(twin), "--across-seeds", "--out", str(tmp_path / "bad")])
     assert not (tmp_path / "bad").exists()
+
+
+def test_ppo_update_figure_draws_the_update_statistics_of_real_runs(runs, tmp_path):
+    from covers_dist.commands.plot import PPO_PANELS, ppo_update_figure
+
+    on, off = runs
+    rows = [m for m in lines(on / "metrics.jsonl") if "ppo/approx_kl" in m]
+    assert rows
+    for m in rows:  # every statistic the figure draws is logged by the learner
+        for key, _, _ in PPO_PANELS:
+            assert key in m, key
+        assert 0.0 <= m["ppo/mean_out_of_box"] <= 1.0
+    path = ppo_update_figure({"on": on, "off": off}, tmp_path / "ppo.png", window=2)
+    assert path.stat().st_size > 10_000

@@ -62,7 +62,8 @@ def evaluate(model, deterministic: bool, seed: int = 10**6) -> dict[str, float]:
 def test_equivariant_policy_transfers_zero_shot_and_cnn_twin_does_not(one_torch_thread):
     start = time.perf_counter()
     equi, equi_history = train("equivariant", max_updates=40)
-    cnn, cnn_history = train("cnn", max_updates=len(equi_history))  # the same budget
+    # the same cap and stopping rule (the equivariant net may stop earlier: it learns one copy faster)
+    cnn, cnn_history = train("cnn", max_updates=40)
     equi_greedy, equi_sampled = evaluate(equi, deterministic=True), evaluate(equi, deterministic=False)
     cnn_sampled, cnn_greedy = evaluate(cnn, deterministic=False), evaluate(cnn, deterministic=True)
     print(

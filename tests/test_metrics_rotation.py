@@ -133,7 +133,8 @@ def test_metrics_writer_rotates_and_every_reader_sees_all_kept_rows(tmp_path):
     assert [e["episode_index"] for e in _episode_rows(tmp_path, 50)] == list(range(50))
     # plot reads the rotated logs: the live episodes file alone is not enough
     (tmp_path / "episodes.jsonl").write_text("")
-    assert {p.name for p in make_plots(tmp_path)} == {"success_return.png", "policy_timeline.png", "ari_policies.png"}
+    names = {"success_return.png", "policy_timeline.png", "ari_policies.png", "ppo_updates.png"}
+    assert {p.name for p in make_plots(tmp_path)} == names
 
 
 def test_resume_truncation_removes_exactly_the_later_rows(tmp_path):

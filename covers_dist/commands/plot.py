@@ -4,6 +4,11 @@
 * ``policy_timeline.png``: the policy id of every episode over time, coloured by its true group
   (the clustering at a glance: one policy per colour band is a perfect clustering);
 * ``ari_policies.png``: the ARI and the number of policies over env steps;
+* ``ppo_updates.png``: the training return and the health of the PPO updates over env steps
+  (approximate KL, clip fraction, explained variance, the share of mean actions outside the
+  action box); a policy whose
+  updates tear it (KL and clip fraction high) or whose mean leaves the box shows here first
+  (:func:`ppo_update_figure` draws several runs in one figure);
 
 and, when the run has evaluation passes (``eval.jsonl``):
 
@@ -114,8 +119,55 @@ def make_plots(run_dir: str | Path, window: int = 10) -> list[Path]:
     ax.grid(alpha=0.3)
     ax.set_title("clustering quality and bank size")
     out.append(_save(fig, run / "ari_policies.png"))
+    out.append(ppo_update_figure({run.name: run}, run / "ppo_updates.png", window=window))
     out += eval_plots(run, episodes, colors)
     return out
+
+
+#: (metrics.jsonl key, panel title, log scale) of :func:`ppo_update_figure`.
+PPO_PANELS = (
+    ("ppo/approx_kl", "approximate KL per update", True),
+    ("ppo/clip_frac", "clip fraction", False),
+    ("ppo/explained_variance", "critic's explained variance", False),
+    ("ppo/mean_out_of_box", "share of mean actions outside [-1, 1]", False),
+)
+
+
+def ppo_update_figure(runs: dict[str, str | Path], path: str | Path, window: int = 10) -> Path:
+    """The training return and the PPO update statistics over env steps (moving average over
+    ``window`` iterations), one colour per run (``{label: run directory}``); a statistic a run did
+    not log is left out of its panel."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = len(PPO_PANELS) + 1
+    fig, axes = plt.subplots(1, panels, figsize=(4.0 * panels, 3.4))
+    for i, (label, run_dir) in enumerate(runs.items()):
+        color = plt.cm.tab10(i % 10)
+        metrics = _dedupe(_read_jsonl(Path(run_dir), "metrics.jsonl"), "iteration")
+        returns = [(m["env_steps"], np.mean([v for k, v in m.items() if k.startswith("return/")])) for m in metrics
+                   if any(k.startswith("return/") for k in m)]  # fmt: skip
+        if returns:
+            x, y = zip(*returns)
+            axes[0].plot(x, _moving(np.array(y, float), window), color=color, label=label)
+        for ax, (key, _, _) in zip(axes[1:], PPO_PANELS):
+            rows = [m for m in metrics if isinstance(m.get(key), (int, float)) and np.isfinite(m[key])]
+            if rows:
+                ax.plot([m["env_steps"] for m in rows], _moving(np.array([m[key] for m in rows], float), window),
+                        color=color, label=label)  # fmt: skip
+    axes[0].set(title="training return (episode mean)", xlabel="env steps")
+    axes[0].grid(alpha=0.3)
+    for ax, (key, title, log) in zip(axes[1:], PPO_PANELS):
+        ax.set(title=title, xlabel="env steps")
+        if log and ax.lines:
+            ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    if axes[0].lines:
+        axes[0].legend(fontsize=8)
+    fig.suptitle(f"PPO updates (moving average over {window} iterations)")
+    return _save(fig, Path(path))
 
 
 def eval_plots(run: Path, episodes: list[dict[str, Any]], colors: dict[str, Any]) -> list[Path]:
