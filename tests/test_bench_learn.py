@@ -43,6 +43,7 @@ def _learn(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess:
         (["--threshold", "0"], ["--threshold"]),
         (["--contenders", "covers,tf-agents"], ["unknown contender", "tf-agents", "rllib"]),
         (["--eval-every", "0"], ["--eval-every", ">= 1"]),
+        (["--keep-runs"], ["--keep-runs", "--out"]),
     ],
 )
 def test_bad_arguments_are_one_line_errors(argv, words):
@@ -59,7 +60,7 @@ def test_bad_arguments_are_one_line_errors(argv, words):
 def test_short_serial_covers_run_writes_curves(tmp_path):
     out = tmp_path / "out"
     res = _learn("--task", "reach", "--contenders", "covers", "--serial", "--budget-steps", "2000",
-                 "--eval-every", "1000", "--set", "ppo.epochs=1", "--json", "--out", str(out))  # fmt: skip
+                 "--eval-every", "1000", "--set", "ppo.epochs=1", "--json", "--out", str(out), "--keep-runs")  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads(res.stdout.strip().splitlines()[-1])
     assert result["task"] == "reach" and result["group"] == "D4" and result["transforms"] == D4
@@ -88,6 +89,14 @@ def test_short_serial_covers_run_writes_curves(tmp_path):
     assert "env steps" in res.stderr and "steps/s" in res.stderr  # progress lines
     assert json.loads((out / "result.json").read_text())["contenders"]["covers"]["curve"] == curve
     assert (out / "curves.png").stat().st_size > 1000
+    # --keep-runs: the contender's run directory stays, with its config, logs and a final checkpoint
+    kept = out / "runs" / "covers"
+    assert (kept / "config.yaml").is_file() and (kept / "episodes.jsonl").is_file()
+    assert any((kept / "checkpoints").iterdir())
+    assert [m["env_steps"] for m in map(json.loads, (kept / "metrics.jsonl").read_text().splitlines())][-1] >= 2000
+    again = _learn("--task", "reach", "--contenders", "covers", "--serial", "--budget-steps", "2000",
+                   "--out", str(out), "--keep-runs", timeout=120)  # fmt: skip
+    assert again.returncode == 2 and "already holds a run" in again.stderr, again.stderr
 
 
 # ---- evaluation, stopping rules, ratios --------------------------------------------------------------

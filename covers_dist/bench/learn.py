@@ -100,6 +100,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object on the last stdout line")
     p.add_argument("--plot", default=None, metavar="PATH.png", help="draw the success curves there")
     p.add_argument("--out", default=None, metavar="DIR", help="write result.json and curves.png there")
+    p.add_argument("--keep-runs", action="store_true",
+                   help="keep each covers-dist contender's run directory as DIR/runs/NAME (needs --out): "
+                        "its metrics, checkpoints and `covers-dist plot` figures")  # fmt: skip
     p.add_argument("--merge", nargs="+", default=None, metavar="RESULT.json",
                    help="train nothing: join the contenders of earlier result.json files of one task group "
                         "(same task, group, threshold and evaluation) into one result, its ratios and curves")  # fmt: skip
@@ -124,6 +127,8 @@ def _check_args(args: argparse.Namespace) -> list[str]:
         _fail(f"--budget-minutes must be > 0, got {args.budget_minutes}")
     if args.seed is not None and args.seed < 0:
         _fail(f"--seed must be >= 0, got {args.seed}")
+    if getattr(args, "keep_runs", False) and not args.out:
+        _fail("--keep-runs needs --out DIR (the runs are kept as DIR/runs/NAME)")
     chosen = list(dict.fromkeys(c.strip() for c in args.contenders.split(",") if c.strip()))
     if not chosen:
         _fail(f"--contenders is empty; choose from {list(CONTENDERS)}")
@@ -260,13 +265,16 @@ def rllib_actor(module: Any, action_space: Any, normalize_actions: bool = True) 
 class _CoversContender:
     """covers-dist's loop (:class:`~covers_dist.runtime.driver.Trainer`) on the serial or Ray backend."""
 
-    def __init__(self, cfg: Any) -> None:
+    def __init__(self, cfg: Any, keep: bool = False) -> None:
         from ..envs import suite_layout
         from ..runtime.driver import Trainer
+        from ..runtime.metrics import MetricsWriter
 
         self.cfg = cfg
         self.layout = suite_layout(cfg.env.suite, cfg.env.image_size)
         self.trainer = Trainer(cfg, log=lambda *_: None)
+        # a kept run logs as `covers-dist train` does (metrics.jsonl, episodes.jsonl; a checkpoint at the end)
+        self.writer = MetricsWriter(self.trainer.run_dir, tensorboard=False) if keep else None
         self.trainer._new_policy(0)  # as Trainer.run starts: policy 0's learner and weights
         backend = self.trainer.backend
         if getattr(backend, "name", "") == "ray":  # wait until the rollout actors are up: start-up, not training
@@ -278,7 +286,10 @@ class _CoversContender:
         return int(self.trainer.env_steps)
 
     def train_once(self) -> None:
-        self.trainer.step()
+        row = self.trainer.step()
+        if self.writer is not None:
+            self.writer.scalars(row)
+            self.writer.episodes(self.trainer._last_episode_rows())
 
     def before_eval(self) -> None:
         self.trainer.drain()  # the update in flight lands and is published
@@ -321,7 +332,12 @@ class _CoversContender:
         return {"num_policies": len(self.trainer.versions)}
 
     def close(self) -> None:
-        self.trainer.close()
+        try:
+            if self.writer is not None:
+                self.trainer.checkpoint()
+                self.writer.close()
+        finally:
+            self.trainer.close()
 
 
 class _RLlibContender:
@@ -464,7 +480,7 @@ def _duration(seconds: float) -> str:
 
 
 def _run_contender(
-    name: str, cfg: Any, elements: list[str], evaluator: GreedyEvaluator, args: argparse.Namespace
+    name: str, cfg: Any, elements: list[str], evaluator: GreedyEvaluator, args: argparse.Namespace, keep: bool = False
 ) -> dict[str, Any]:
     """Build one contender (Ray started for it and shut down after), race it, tear it down."""
     from ..runtime.ray_setup import init_ray, shutdown_ray
@@ -475,7 +491,7 @@ def _run_contender(
         init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address)
     contender: Any = None
     try:
-        contender = _RLlibContender(cfg, elements) if name == "rllib" else _CoversContender(cfg)
+        contender = _RLlibContender(cfg, elements) if name == "rllib" else _CoversContender(cfg, keep)
         setup_s = time.perf_counter() - t0
         _log(f"learn {name}: ready after {setup_s:.1f} s of start-up")
         result = race(
@@ -685,6 +701,10 @@ def run(args: argparse.Namespace) -> int:
     # that), no held-out pairs
     overrides = ["env.episodes_per_task=1", *user, f"env.tasks=[{task}]", "env.held_out=0", "eval.tasks=null"]
     cfg0 = load_config(args.config, overrides)
+    kept = {n: str(Path(args.out) / "runs" / n) for n in chosen if getattr(args, "keep_runs", False) and n != "rllib"}
+    for run_dir in kept.values():
+        if Path(run_dir).is_dir() and any(Path(run_dir).iterdir()):
+            _fail(f"--keep-runs: {run_dir} already holds a run; choose another --out or remove it")
     evaluator = GreedyEvaluator(cfg0.env, task, elements, args.eval_episodes, cfg0.seed)
     result: dict[str, Any] = {
         "task": task,
@@ -705,11 +725,12 @@ def run(args: argparse.Namespace) -> int:
     failed = False
     try:
         for name in chosen:
-            run_dir = tempfile.mkdtemp(prefix=f"covers-learn-{name}-")
+            keep = name in kept
+            run_dir = kept[name] if keep else tempfile.mkdtemp(prefix=f"covers-learn-{name}-")
             extra = [f"runtime.run_dir={run_dir}", f"runtime.serial={str(serial).lower()}"]
             try:
                 cfg = load_config(args.config, [*overrides, *CONTENDER_OVERRIDES.get(name, []), *extra])
-                result["contenders"][name] = _run_contender(name, cfg, elements, evaluator, args)
+                result["contenders"][name] = _run_contender(name, cfg, elements, evaluator, args, keep)
             except KeyboardInterrupt:
                 raise
             except Exception as e:  # noqa: BLE001 - reported; the other contenders still run
@@ -717,7 +738,8 @@ def run(args: argparse.Namespace) -> int:
                 _log(f"learn {name}: failed: {type(e).__name__}: {e}\n{traceback.format_exc(limit=6)}")
                 result["contenders"][name] = {"reached": False, "error": f"{type(e).__name__}: {e}", "curve": []}
             finally:
-                shutil.rmtree(run_dir, ignore_errors=True)
+                if not keep:
+                    shutil.rmtree(run_dir, ignore_errors=True)
     finally:
         evaluator.close()
     result["ratios"] = ratios(result["contenders"])
