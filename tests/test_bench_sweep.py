@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 
@@ -44,3 +45,24 @@ def test_a_tiny_sweep_runs_each_variant_and_refuses_a_bad_one(tmp_path):
     assert (tmp_path / "run-02" / "metrics.jsonl").is_file()
     bad = subprocess.run([*cmd, "--variant", "ppo.reward_norm=sometimes"], capture_output=True, text=True)
     assert bad.returncode != 0 and "reward_norm" in bad.stderr
+
+
+def test_a_signal_stops_the_whole_sweep_not_only_the_run_in_progress(tmp_path):
+    cmd = [sys.executable, "-m", "covers_dist", "bench", "sweep", "--config", "configs/smoke.yaml", "--task", "reach",
+           "--steps", "40000", "--serial", "--json", "--out", str(tmp_path),
+           "--variant", "", "--variant", "ppo.lr=1e-3", "--variant", "ppo.epochs=1"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in proc.stderr:  # wait until the first run is training
+            if "steps=" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err[-3000:]
+    report = json.loads(out.strip().splitlines()[-1])
+    assert [r["variant"] for r in report["runs"]] == ["(as configured)"] and report["runs"][0]["interrupted"]
+    assert "the sweep stops here" in err
+    assert not (tmp_path / "run-02").exists()

@@ -120,10 +120,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"[{n}/{total}] {task} seed {seed}: {name}", file=sys.stderr, flush=True)
         t0 = time.monotonic()
         with contextlib.redirect_stdout(sys.stderr):  # the run's progress lines
-            train(cfg, overwrite=True)
+            status = train(cfg, overwrite=True).get("status")
         wall = time.monotonic() - t0
         summary = summarize(list(read_jsonl_segments(run_dir, "metrics.jsonl")), task, args.window)
         results.append({"variant": name, "seed": seed, "wall_s": round(wall, 1), **summary})
+        if status == "interrupted":  # SIGINT / SIGTERM stop the sweep, not only the run in progress
+            results[-1]["interrupted"] = True
+            print(f"[{n}/{total}] interrupted: the sweep stops here ({n - 1} runs complete)", file=sys.stderr, flush=True)
+            break
         eta = (time.monotonic() - t_all) / n * (total - n)
         print(f"[{n}/{total}] final {summary['final']} fifths {summary['fifths']} "
               f"0.9 at {summary['steps_to_0.9']} steps; {wall:.0f} s; ETA {eta / 60:.0f} min",
