@@ -184,13 +184,16 @@ def _paper_row(tasks: Sequence[str], lead: Sequence[str]) -> list[Any]:
     )
 
 
+def _header(tasks: Sequence[str], lead: Sequence[str]) -> list[str]:
+    names = [PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]
+    return [*lead, *names, "average", "held-out (zero-shot)", "forgetting", "policies", "ARI"]
+
+
 def methods_table(data: dict[str, Any], paper: bool = True) -> str:
     """A Markdown table of ``data["methods"]`` (:func:`comparison_json` with ``across_seeds``): one
     row per method, mean +- standard deviation over its seeds (and the paper's COVERS row)."""
     tasks = data["tasks"]
-    names = [PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]
-    header = ["method", "seeds", "env steps (mean)"] + names
-    header += ["average", "held-out (zero-shot)", "forgetting", "policies", "ARI"]
+    header = _header(tasks, ["method", "seeds", "env steps (mean)"])
     rows = []
     for m in data["methods"]:
         one_policy = m["policies"] is not None and m["policies"]["mean"] == 1 and len(tasks) > 1
@@ -209,9 +212,7 @@ def compare_table(data: dict[str, Any], paper: bool = True) -> str:
     """A Markdown table of :func:`comparison_json`'s ``data``: one row per run (and the paper's COVERS
     row when the tasks are the paper's)."""
     tasks = data["tasks"]
-    names = [PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]
-    header = ["method", "seed", "env steps"] + names
-    header += ["average", "held-out (zero-shot)", "forgetting", "policies", "ARI"]
+    header = _header(tasks, ["method", "seed", "env steps"])
     rows = []
     for r in data["runs"]:
         rows.append(
