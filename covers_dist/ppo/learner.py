@@ -233,7 +233,7 @@ class PPOLearner:
                 with torch.autocast(self._autocast_device, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
                     logp, entropy, values, mean = self.model.evaluate_actions(obs, batch["action"][idx], return_mean=True)
                 logp, entropy, values, mean = logp.float(), entropy.float(), values.float(), mean.float()
-                if epochs_done == 0:  # how much of the mean lies outside the action box, before this update
+                if epochs_done == 0:  # how much of the mean lies outside the action box, over the first epoch
                     out_of_box += float((mean.detach().abs() > 1.0).float().sum())
                     out_count += mean.numel()
                 adv = batch["adv"][idx]
