@@ -288,8 +288,7 @@ class _CoversContender:
     def train_once(self) -> None:
         row = self.trainer.step()
         if self.writer is not None:
-            self.writer.scalars(row)
-            self.writer.episodes(self.trainer._last_episode_rows())
+            self.trainer.write_iteration(self.writer, row)
 
     def before_eval(self) -> None:
         self.trainer.drain()  # the update in flight lands and is published

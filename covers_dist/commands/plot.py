@@ -119,7 +119,7 @@ def make_plots(run_dir: str | Path, window: int = 10) -> list[Path]:
     ax.grid(alpha=0.3)
     ax.set_title("clustering quality and bank size")
     out.append(_save(fig, run / "ari_policies.png"))
-    out.append(ppo_update_figure({run.name: run}, run / "ppo_updates.png", window=window))
+    out.append(_ppo_update_figure({run.name: metrics}, run / "ppo_updates.png", window))
     out += eval_plots(run, episodes, colors)
     return out
 
@@ -137,6 +137,12 @@ def ppo_update_figure(runs: dict[str, str | Path], path: str | Path, window: int
     """The training return and the PPO update statistics over env steps (moving average over
     ``window`` iterations), one colour per run (``{label: run directory}``); a statistic a run did
     not log is left out of its panel."""
+    series = {label: _dedupe(_read_jsonl(Path(d), "metrics.jsonl"), "iteration") for label, d in runs.items()}
+    return _ppo_update_figure(series, path, window)
+
+
+def _ppo_update_figure(series: dict[str, list[dict[str, Any]]], path: str | Path, window: int) -> Path:
+    """:func:`ppo_update_figure` on metrics rows already read (``{label: rows}``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -144,9 +150,8 @@ def ppo_update_figure(runs: dict[str, str | Path], path: str | Path, window: int
 
     panels = len(PPO_PANELS) + 1
     fig, axes = plt.subplots(1, panels, figsize=(4.0 * panels, 3.4))
-    for i, (label, run_dir) in enumerate(runs.items()):
+    for i, (label, metrics) in enumerate(series.items()):
         color = plt.cm.tab10(i % 10)
-        metrics = _dedupe(_read_jsonl(Path(run_dir), "metrics.jsonl"), "iteration")
         returns = [(m["env_steps"], np.mean([v for k, v in m.items() if k.startswith("return/")])) for m in metrics
                    if any(k.startswith("return/") for k in m)]  # fmt: skip
         if returns:

@@ -372,8 +372,7 @@ class Trainer:
                     self.start_evaluation()
                 row.update(self.evaluation.collect())
                 self.backend.call_clustering("report", row)
-                writer.scalars(row)
-                writer.episodes(self._last_episode_rows())
+                self.write_iteration(writer, row)
                 progress.maybe_print(row)
                 for hook in self.on_iteration:
                     hook()
@@ -431,6 +430,11 @@ class Trainer:
 
         with torch.random.fork_rng(devices=[]):  # a serial pass runs here: training's torch RNG stays as it was
             self.evaluation.start(self.iteration, make_pass)
+
+    def write_iteration(self, writer: Any, row: dict[str, Any]) -> None:
+        """Log the iteration just stepped: its metrics row and its episodes (a ``MetricsWriter``)."""
+        writer.scalars(row)
+        writer.episodes(self._last_episode_rows())
 
     def _last_episode_rows(self) -> list[dict[str, Any]]:
         steps = self.env_steps - sum(s["length"] for s in self._last_rows)
