@@ -38,7 +38,7 @@ from ..envs.layout import ObsLayout
 from ..symmetry import escnn_gspace, escnn_planar_repr, get_group
 from ._escnn_compat import import_escnn_nn
 
-__all__ = ["EquivariantCore", "block_sizes", "space_to_depth_repr"]
+__all__ = ["EquivariantCore", "block_sizes", "canonical_change_of_basis", "space_to_depth_repr"]
 
 POLICY_HEAD_GAIN = 0.01
 _S2D_REPRS: dict[tuple[str, int], Any] = {}  # one representation per (gspace, k), built once
@@ -70,14 +70,17 @@ def space_to_depth_repr(gspace: Any, k: int) -> Any:
     """The representation of ``gspace``'s group on the k^2 pixels of a k x k block (channel order of
     :func:`torch.nn.functional.pixel_unshuffle`: row-major within the block).
 
-    Built from escnn's own action on a k x k grid, so it matches how escnn moves the map.
+    Built from escnn's own action on a k x k grid, so it matches how escnn moves the map. Its
+    change of basis into irreps is :func:`canonical_change_of_basis`, the same in every process:
+    escnn's own decomposition (``build_from_discrete_group_representation``) starts an optimiser
+    from numpy's global random state, so two processes (a learner and a rollout worker) would read
+    the same weights of the first convolution as different filters.
     """
-    enn = import_escnn_nn()  # with the exact-SVD fix the decomposition below needs
-    from escnn.group.representation import build_from_discrete_group_representation
+    enn = import_escnn_nn()
+    from escnn.group import Representation
 
     FieldType = enn.FieldType
     group = gspace.fibergroup
-    name = f"space_to_depth_{k}"
     key = (repr(gspace), k)
     if key in _S2D_REPRS:
         return _S2D_REPRS[key]
@@ -91,8 +94,69 @@ def space_to_depth_repr(gspace: Any, k: int) -> Any:
         perm = np.zeros((k * k, k * k))
         perm[np.arange(k * k), moved] = 1.0  # (g . x)[p] = x[moved[p]]
         matrices[h] = perm
-    _S2D_REPRS[key] = build_from_discrete_group_representation(matrices, name, group, ["pointwise"])
-    return _S2D_REPRS[key]
+    irreps, cob = canonical_change_of_basis(matrices, group)
+    name = f"space_to_depth_{k}_canonical"
+    rep = group.representations.get(name)
+    if rep is None:
+        rep = Representation(group, name, irreps, cob, ["pointwise"], representation=matrices)
+    _S2D_REPRS[key] = rep
+    return rep
+
+
+def canonical_change_of_basis(matrices: dict[Any, np.ndarray], group: Any) -> tuple[list[tuple], np.ndarray]:
+    """``(irreps, Q)`` with ``matrices[g] = Q @ (direct sum of irreps)(g) @ Q.T`` for every element,
+    ``Q`` orthogonal, computed without randomness (so every process gets the same ``Q``).
+
+    Irreps come in escnn's order (its character-based multiplicities). For each irrep psi of
+    multiplicity m, the columns of one copy are the group average ``T = sum_g rho(g) A psi(g)^T``
+    (an intertwiner for any ``A``) for the fixed candidates ``A = e_i e_j^T`` in order, minus its
+    projection on the copies already taken, scaled by ``(T^T T)^(-1/2)`` (which commutes with psi,
+    so ``T`` stays an intertwiner and becomes an isometry); candidates with nothing left are skipped.
+    """
+    from escnn.group._numerical import find_irreps_multiplicities_finitegroup
+
+    elements = list(group.elements)
+    n = next(iter(matrices.values())).shape[0]
+    irreps: list[tuple] = []
+    blocks: list[np.ndarray] = []
+    for irrep_id, mult in find_irreps_multiplicities_finitegroup(matrices, group):
+        psi = group.irrep(*irrep_id)
+        d = psi.size
+        psis = [np.asarray(psi(g), dtype=np.float64) for g in elements]
+        taken: list[np.ndarray] = []
+        for i in range(n):
+            for j in range(d):
+                if len(taken) == mult:
+                    break
+                t = sum(np.outer(matrices[g][:, i], p[:, j]) for g, p in zip(elements, psis)) / len(elements)
+                for prev in blocks + taken:  # other irreps' copies are orthogonal already; this is exact
+                    t = t - prev @ (prev.T @ t)
+                gram = t.T @ t
+                w, v = np.linalg.eigh(gram)
+                if w.min() < 1e-8:
+                    continue
+                taken.append(t @ (v @ np.diag(w**-0.5) @ v.T))
+        if len(taken) != mult:
+            raise RuntimeError(f"found {len(taken)} of {mult} copies of irrep {irrep_id} in a {n}-dim representation")
+        blocks += taken
+        irreps += [tuple(irrep_id)] * mult
+    q = np.concatenate(blocks, axis=1)
+    if q.shape != (n, n) or not np.allclose(q.T @ q, np.eye(n), atol=1e-9):
+        raise RuntimeError("the canonical change of basis is not orthogonal")
+    for g in elements:
+        diag = _block_diag([np.asarray(group.irrep(*i)(g), dtype=np.float64) for i in irreps])
+        if not np.allclose(matrices[g], q @ diag @ q.T, atol=1e-9):
+            raise RuntimeError(f"the canonical change of basis does not decompose the representation at {g}")
+    return irreps, q
+
+
+def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+    size = sum(b.shape[0] for b in blocks)
+    out, at = np.zeros((size, size)), 0
+    for b in blocks:
+        out[at : at + b.shape[0], at : at + b.shape[0]] = b
+        at += b.shape[0]
+    return out
 
 
 def _full_map_conv(enn: Any, in_type: Any, out_type: Any, size: int) -> Any:
