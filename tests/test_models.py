@@ -282,6 +282,89 @@ def test_space_to_depth_representation_is_how_escnn_moves_the_folded_image(group
         torch.testing.assert_close(moved_then_folded, folded_then_moved, rtol=0, atol=1e-9)
 
 
+_PROBE_SCRIPT = """
+import json, sys
+import numpy as np
+np.random.seed(int(sys.argv[1]))  # escnn's own decomposition would start from this state
+from covers_dist.config import NetworkConfig
+from covers_dist.envs.layout import ObsLayout
+from covers_dist.models import build_actor_critic
+from covers_dist.models.equivariant import space_to_depth_repr
+from covers_dist.symmetry import escnn_gspace
+layout = ObsLayout(image_size=64, proprio_dim=4, proprio_pairs=1, action_dim=4, action_pairs=1)
+model = build_actor_critic(NetworkConfig(channels=[4, 8, 8, 16], hidden=16, space_to_depth=2), layout, seed=0)
+bases = {g: space_to_depth_repr(escnn_gspace(g), 2).change_of_basis.tolist() for g in ("D4", "C4", "D1")}
+print(json.dumps({"probe": model.probe_outputs().tolist(), "bases": bases}))
+"""
+
+
+def test_space_to_depth_network_is_the_same_function_in_every_process():
+    """A learner and its rollout workers are different processes: the same weights must give the
+    same policy in each, whatever their hash seed and numpy random state."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    outs = []
+    for hash_seed, np_seed in (("0", 1), ("1", 2)):
+        env = {**os.environ, "PYTHONHASHSEED": hash_seed}
+        proc = subprocess.run(
+            [sys.executable, "-c", _PROBE_SCRIPT, str(np_seed)], env=env, capture_output=True, text=True, timeout=300
+        )
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        outs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    assert outs[0]["bases"] == outs[1]["bases"]
+    np.testing.assert_array_equal(outs[0]["probe"], outs[1]["probe"])
+    here = build_actor_critic(NetworkConfig(channels=[4, 8, 8, 16], hidden=16, space_to_depth=2), METAWORLD_LAYOUT, seed=5)
+    np.testing.assert_allclose(here.probe_outputs(), outs[0]["probe"], rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("group", ["D4", "C4", "D2", "C2", "D1"])
+def test_canonical_change_of_basis_decomposes_without_randomness(group):
+    from escnn.group._numerical import find_irreps_multiplicities_finitegroup
+
+    from covers_dist.models.equivariant import canonical_change_of_basis, space_to_depth_repr
+    from covers_dist.symmetry import escnn_gspace
+
+    gs = escnn_gspace(group)
+    rho = space_to_depth_repr(gs, 2)
+    matrices = {g: rho(g) for g in gs.fibergroup.elements}
+    np.random.seed(1)
+    irreps, q = canonical_change_of_basis(matrices, gs.fibergroup)
+    np.random.seed(2)
+    irreps2, q2 = canonical_change_of_basis(matrices, gs.fibergroup)
+    assert irreps == irreps2 and np.array_equal(q, q2)
+    np.testing.assert_allclose(q.T @ q, np.eye(4), atol=1e-12)
+    expected = [tuple(i) for i, m in find_irreps_multiplicities_finitegroup(matrices, gs.fibergroup) for _ in range(m)]
+    assert irreps == expected
+    assert np.array_equal(rho.change_of_basis, q)
+
+
+def test_probe_outputs_leave_the_model_as_it_was_and_the_check_names_the_odd_process():
+    from covers_dist.models.checks import check_same_function
+
+    a = build_actor_critic(NetworkConfig(channels=[4, 8, 8, 16], hidden=16, space_to_depth=2), METAWORLD_LAYOUT, seed=0)
+    b = build_actor_critic(NetworkConfig(channels=[4, 8, 8, 16], hidden=16, space_to_depth=2), METAWORLD_LAYOUT, seed=1)
+    a.eval()
+    obs = to_torch(random_obs(METAWORLD_LAYOUT, 3))
+    before, weights = a(obs)[0], a.get_weights()
+    state = torch.get_rng_state()
+    probe = a.probe_outputs()
+    assert torch.equal(torch.get_rng_state(), state) and not a.training
+    assert all(torch.equal(weights[k], v) for k, v in a.get_weights().items())
+    torch.testing.assert_close(a(obs)[0], before, rtol=0, atol=0)
+    np.testing.assert_allclose(b.probe_outputs(), probe, rtol=0, atol=1e-6)  # the probe ignores the weights
+    check_same_function({"rollout worker 0": probe, "learner of policy 0": b.probe_outputs()})
+    other = build_actor_critic(NetworkConfig(channels=[4, 8, 8, 16], hidden=8, space_to_depth=2), METAWORLD_LAYOUT, seed=0)
+    with pytest.raises(RuntimeError, match="learner of policy 3 builds a different network from rollout worker 0"):
+        check_same_function({"rollout worker 0": probe, "learner of policy 3": other.probe_outputs()})
+    skewed = probe.copy()
+    skewed[0] += 0.05 * np.abs(probe).max()
+    with pytest.raises(RuntimeError, match="rollout worker 1 and rollout worker 0 compute different functions"):
+        check_same_function({"rollout worker 0": probe, "rollout worker 1": skewed})
+
+
 def test_space_to_depth_cuts_the_work_and_block_sizes_validate():
     from covers_dist.models.equivariant import block_sizes
 

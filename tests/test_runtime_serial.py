@@ -113,3 +113,23 @@ def test_resume_after_a_kill_past_the_last_checkpoint_logs_each_iteration_once(t
     assert [r["iteration"] for r in rows] == [1, 2, 3, 4]
     episodes = [json.loads(line)["episode_index"] for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
     assert episodes == list(range(32))
+
+
+def test_checkpoints_record_the_network_probe_and_loading_checks_it(tmp_path):
+    from covers_dist.runtime.saved_run import load_saved_run, probe_mismatch
+
+    cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=800")
+    trainer = Trainer(cfg, log=lambda *_: None)
+    trainer.run()
+    probe = trainer.backend.network_probe()
+    trainer.close()
+    saved = json.loads((latest_valid_checkpoint(tmp_path) / "driver.json").read_text())["network_probe"]
+    np.testing.assert_array_equal(saved, probe)
+    lines = []
+    load_saved_run(tmp_path, log=lines.append)
+    assert not [line for line in lines if "warning" in line]
+    assert probe_mismatch(saved, probe, cfg) is None
+    assert "builds the network differently" in probe_mismatch(list(np.asarray(saved) * 1.5), probe, cfg)
+    assert probe_mismatch(None, probe, cfg) is None  # an old checkpoint of a net without the stem
+    stem = load_config("configs/quickstart.yaml")
+    assert "drawn per process" in probe_mismatch(None, probe, stem)

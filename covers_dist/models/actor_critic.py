@@ -41,6 +41,8 @@ ACTION_MEANS = ("tanh", "linear")
 #: Observations per chunk in :meth:`ActorCritic.features_np` (bounds peak memory).
 FEATURE_CHUNK = 256
 _LOG_2PI = math.log(2.0 * math.pi)
+#: Seed of the probe weights and input of :meth:`ActorCritic.probe_outputs`.
+PROBE_SEED = 20240611
 
 
 def gaussian_log_prob(actions: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
@@ -242,6 +244,33 @@ class ActorCritic(nn.Module):
             self.train(True)
             self.train(False)
         self.invalidate_fast()
+
+    def probe_outputs(self, batch: int = 4) -> np.ndarray:
+        """The core's outputs (mean, value, features) for fixed probe weights on a fixed probe input.
+
+        Two processes that build the same network compute the same function of the same weights
+        only if every constant derived at build time (escnn's bases and changes of basis) is the
+        same; this is the check: equal arrays (up to float rounding) in every process. The probe
+        weights and input come from a fixed ``torch.Generator``; the model's own weights, mode and
+        the global random state are left as they were.
+        """
+        gen = torch.Generator().manual_seed(PROBE_SEED)
+        saved, was_training = self.get_weights(), self.training
+        probe = {n: 0.1 * torch.randn(w.shape, generator=gen) for n, w in sorted(saved.items())}
+        s, p = self.layout.image_size, self.layout.proprio_dim
+        image = torch.rand(batch, 3, s, s, generator=gen)
+        proprio = torch.randn(batch, p, generator=gen)
+        device = self.log_std_free.device
+        try:
+            self.set_weights(probe)
+            self.eval()
+            with torch.no_grad():
+                mean, value, features = self.core(image.to(device), proprio.to(device))
+            parts = [mean.float().flatten(), value.float().flatten(), features.float().flatten()]
+            return torch.cat(parts).cpu().numpy().astype(np.float64)
+        finally:
+            self.set_weights(saved)
+            self.train(was_training)
 
     def num_parameters(self) -> int:
         """Number of learnable scalars."""

@@ -20,7 +20,11 @@ from ..symmetry import GroupElement, get_group
 if TYPE_CHECKING:  # pragma: no cover
     from .actor_critic import ActorCritic
 
-__all__ = ["equivariance_errors", "relative_error"]
+__all__ = ["PROBE_TOLERANCE", "check_same_function", "equivariance_errors", "relative_error"]
+
+#: Largest relative difference between two processes' probe outputs still taken as the same function
+#: (float rounding across thread counts is ~1e-6; a different escnn basis differs by ~1e-1).
+PROBE_TOLERANCE = 1e-4
 
 
 def relative_error(actual: np.ndarray, expected: np.ndarray) -> float:
@@ -72,3 +76,28 @@ def max_error(errors: dict[str, dict[str, float]], skip_identity: bool = True) -
     """The largest error in an :func:`equivariance_errors` result."""
     e = GroupElement().name
     return max(v for name, row in errors.items() if not (skip_identity and name == e) for v in row.values())
+
+
+def check_same_function(probes: Mapping[str, np.ndarray]) -> None:
+    """Raise ``RuntimeError`` unless every process's :meth:`ActorCritic.probe_outputs` matches the first.
+
+    ``probes`` maps a process's name (``"rollout worker 0"``, ``"learner of policy 2"``) to its
+    probe outputs. Processes that read the same weights as different functions would sample with
+    one policy and update another, so a run refuses to go on.
+    """
+    items = list(probes.items())
+    if len(items) < 2:
+        return
+    ref_name, ref = items[0]
+    for name, out in items[1:]:
+        out = np.asarray(out, np.float64)
+        if out.shape != np.shape(ref):
+            raise RuntimeError(f"{name} builds a different network from {ref_name}: probe shapes {out.shape} vs {np.shape(ref)}")
+        err = relative_error(out, ref)
+        if err > PROBE_TOLERANCE:
+            raise RuntimeError(
+                f"{name} and {ref_name} compute different functions of the same weights (relative difference "
+                f"{err:.2g} > {PROBE_TOLERANCE:g}): a constant of the network is built differently per process "
+                f"(e.g. a change of basis drawn from a random state), so workers would sample with another policy "
+                f"than the learner updates"
+            )

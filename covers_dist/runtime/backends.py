@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
+from ..models.checks import check_same_function
 from .rollout import EpisodeSpec, training_seeds
 
 __all__ = ["SerialBackend", "RayBackend", "RayEvalExecutors", "split_first_frames", "summarize_episode"]
@@ -116,6 +117,10 @@ class SerialBackend:
     def prepare_learner(self, policy_id: int) -> None:
         """Nothing to prepare in one process (a learner is built when its policy is created)."""
 
+    def network_probe(self) -> np.ndarray:
+        """The network's probe outputs in this run's processes (saved with each checkpoint)."""
+        return self.workers[0].probe()
+
     def call_learner(self, policy_id: int, method: str, *args: Any) -> Any:
         return getattr(self.learners[policy_id], method)(*args)
 
@@ -154,6 +159,16 @@ class RayBackend:
         self.learners: dict[int, Any] = {}
         self._spare: dict[int, Any] = {}  # learners started ahead of their policy (prepare_learner)
         self._eval: RayEvalExecutors | None = None
+        self._probes: dict[str, Any] = {}
+        self._check_probes({f"rollout worker {i}": w for i, w in enumerate(self.workers)} | {"clustering actor": self.clustering})
+
+    def _check_probes(self, actors: dict[str, Any]) -> None:
+        """Every actor must compute the same function of the same weights as those checked before
+        (:func:`covers_dist.models.checks.check_same_function`); raises ``RuntimeError`` otherwise."""
+        names = list(actors)
+        outputs = self.ray.get([actors[n].probe.remote() for n in names])
+        self._probes.update(zip(names, outputs))
+        check_same_function(self._probes)
 
     def publish(self, weights: Any) -> Any:
         return [self.ray.put(weights)]  # wrapped in a list: workers resolve it only when needed
@@ -203,7 +218,9 @@ class RayBackend:
     def ensure_learner(self, policy_id: int) -> None:
         if policy_id not in self.learners:
             spare = self._spare.pop(policy_id, None)
-            self.learners[policy_id] = spare if spare is not None else self._new_learner(policy_id)
+            learner = spare if spare is not None else self._new_learner(policy_id)
+            self._check_probes({f"learner of policy {policy_id}": learner})
+            self.learners[policy_id] = learner
 
     def prepare_learner(self, policy_id: int) -> None:
         """Start the learner actor of the policy the bank would create next, in the background.
@@ -215,6 +232,10 @@ class RayBackend:
         if policy_id not in self.learners and policy_id not in self._spare:
             self._spare[policy_id] = self._new_learner(policy_id)
 
+    def network_probe(self) -> np.ndarray:
+        """The network's probe outputs in this run's processes (saved with each checkpoint)."""
+        return next(iter(self._probes.values()))
+
     def _new_learner(self, policy_id: int) -> Any:
         """A learner actor that persists its state after every update (a restart reloads it)."""
         return self._learner_cls.remote(self.cfg, policy_id, None, self.run_dir)
@@ -225,6 +246,7 @@ class RayBackend:
     def eval_executors(self) -> "RayEvalExecutors":
         if self._eval is None:
             self._eval = RayEvalExecutors(self.cfg, self.run_dir)
+            self._check_probes({f"evaluation worker {i}": a for i, a in enumerate(self._eval.actors)})
         return self._eval
 
     def shutdown(self) -> None:

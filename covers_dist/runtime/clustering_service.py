@@ -81,6 +81,14 @@ class ClusteringService:
             raise LookupError(f"no weights received yet for policy {policy_id}")
         return model.features_np(obs)
 
+    def probe(self) -> np.ndarray:
+        """This process's :meth:`~covers_dist.models.ActorCritic.probe_outputs` (the cross-process check)."""
+        model = next(iter(self.models.values()), None)
+        if model is None:
+            with torch.random.fork_rng(devices=[]):
+                model = build_actor_critic(self.cfg.network, self.layout)
+        return model.probe_outputs()
+
     def sync_weights(self, weights_map: dict[int, tuple[int, Any]]) -> None:
         """Load ``{policy id: (version, weights)}``; only versions not loaded yet are fetched."""
         for pid, (version, handle) in weights_map.items():

@@ -41,6 +41,7 @@ from .metrics import M, MetricsWriter, Progress
 from .processes import announce
 from .ray_setup import resolve_weights
 from .rollout import EpisodeSpec
+from .saved_run import probe_mismatch
 
 __all__ = ["Trainer", "train"]
 
@@ -288,6 +289,7 @@ class Trainer:
             "acted_other": self.acted_other,
             "stream": self.stream.state_dict(),
             "numpy_rng": np.random.get_state()[1].tolist(),
+            "network_probe": self.backend.network_probe().tolist(),
             "torch_rng": torch.get_rng_state().tolist(),
         }
 
@@ -324,6 +326,9 @@ class Trainer:
         self.group_info.update(state.get("groups", {}))
         self.acted_other = int(state.get("acted_other", 0))
         self.stream.load_state_dict(state["stream"])
+        warning = probe_mismatch(state.get("network_probe"), self.backend.network_probe(), self.cfg)
+        if warning:
+            self.log(f"warning: {path}: {warning}")
         self.backend.call_clustering("load", str(path / "bank"))
         pending = state.get("pending_update")
         _drop_live_states(self.run_dir, keep=state["policies"])  # policies created after this checkpoint

@@ -68,6 +68,10 @@ class PolicyLearner:
         if self.live_path is not None and self.live_path.is_file():
             self._load_live()
 
+    def probe(self) -> Any:
+        """This process's :meth:`~covers_dist.models.ActorCritic.probe_outputs` (the cross-process check)."""
+        return self.model.probe_outputs()
+
     def weights(self) -> tuple[int, dict[str, torch.Tensor]]:
         return self.version, self.model.get_weights()
 

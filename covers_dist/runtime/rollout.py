@@ -181,5 +181,9 @@ class RolloutWorker:
             )
         return out
 
+    def probe(self) -> np.ndarray:
+        """This process's :meth:`~covers_dist.models.ActorCritic.probe_outputs` (the cross-process check)."""
+        return self.model.probe_outputs()
+
     def stats(self) -> dict[str, int]:
         return {"worker_index": self.worker_index, "env_steps": self.env_steps, "weight_pulls": self.weight_pulls}

@@ -14,7 +14,7 @@ from typing import Any
 from ..config import Config, load_run_config
 from .checkpoint import CheckpointError, latest_valid_checkpoint
 
-__all__ = ["SavedRun", "load_saved_run", "model_weights"]
+__all__ = ["SavedRun", "load_saved_run", "model_weights", "probe_mismatch"]
 
 
 @dataclass
@@ -31,6 +31,35 @@ class SavedRun:
     def weights_map(self) -> dict[int, tuple[int, Any]]:
         """``{policy id: (version, weights)}`` as the evaluation workers take it."""
         return {pid: (self.versions[pid], w) for pid, w in self.weights.items()}
+
+
+def probe_mismatch(saved: Any, current: Any, cfg: Config) -> str | None:
+    """Why a checkpoint's policies may act differently in this process than in training, or None.
+
+    ``saved`` is the ``network_probe`` of a checkpoint's driver.json (the network's
+    :meth:`~covers_dist.models.ActorCritic.probe_outputs` in the run's processes), ``current`` this
+    process's. Checkpoints written before the probe was saved have none: an equivariant network
+    with a space-to-depth stem had, then, a first-layer basis drawn anew in every process.
+    """
+    import numpy as np
+
+    from ..models.checks import PROBE_TOLERANCE, relative_error
+
+    if saved is None:
+        if cfg.network.kind == "equivariant" and cfg.network.space_to_depth > 1:
+            return (
+                "saved before checkpoints recorded the network's probe: its first convolution's basis "
+                "(space_to_depth stem) was drawn per process then, so its policies act differently here"
+            )
+        return None
+    saved = np.asarray(saved, np.float64)
+    current = np.asarray(current, np.float64)
+    if saved.shape != current.shape or relative_error(current, saved) > PROBE_TOLERANCE:
+        return (
+            "this process builds the network differently from the run that wrote it (another escnn or "
+            "covers-dist version?): the same weights compute another function here"
+        )
+    return None
 
 
 def model_weights(learner_state: Any, param_names: set[str], where: str) -> dict[str, Any]:
@@ -76,4 +105,7 @@ def load_saved_run(run_dir: str | Path, log: Any = print) -> SavedRun:
     service = ClusteringService(cfg, read_only=True)
     service.load(str(ckpt / "bank"), weights=weights)
     driver = json.loads((ckpt / "driver.json").read_text()) if (ckpt / "driver.json").is_file() else {}
+    warning = probe_mismatch(driver.get("network_probe"), model.probe_outputs(), cfg)
+    if warning:
+        log(f"warning: {ckpt}: {warning}")
     return SavedRun(run_dir, cfg, ckpt, service, weights, versions, driver)
