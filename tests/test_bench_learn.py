@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from covers_dist.bench.learn import GreedyEvaluator, covers_actor, race, ratios
 from covers_dist.config import config_to_dict, load_config
@@ -161,6 +162,35 @@ def test_covers_evaluates_each_transform_with_the_policy_the_bank_picks(tmp_path
     finally:
         evaluator.close()
         contender.close()
+
+
+def test_covers_training_does_not_depend_on_when_it_is_evaluated(tmp_path, one_torch_thread):
+    """The evaluation acts with the update in flight without publishing it: a run evaluated after
+    every iteration trains exactly as one never evaluated (pipelined loop, serial backend)."""
+    from covers_dist.bench.learn import _CoversContender
+
+    runs = []
+    for name, evaluate in (("plain", False), ("evaluated", True)):
+        cfg = load_config("configs/smoke.yaml", [
+            "env.tasks=[reach]", "env.episodes_per_task=1", "runtime.serial=true", "ppo.epochs=1",
+            "runtime.pipeline=true", f"runtime.run_dir={tmp_path / name}",
+        ])  # fmt: skip
+        contender = _CoversContender(cfg)
+        evaluator = GreedyEvaluator(cfg.env, "reach", D4[:2], episodes=1, seed=cfg.seed)
+        try:
+            for _ in range(4):
+                contender.train_once()
+                if evaluate:
+                    contender.before_eval()
+                    evaluator.evaluate(contender.chooser())
+            version, weights = contender.trainer.backend.call_learner(0, "weights")
+            runs.append((version, contender.trainer.versions[0], weights))
+        finally:
+            evaluator.close()
+            contender.close()
+    (v1, published1, w1), (v2, published2, w2) = runs
+    assert (v1, published1) == (v2, published2)
+    assert all(torch.equal(w1[k], w2[k]) for k in w1)
 
 
 class _FakeContender:

@@ -24,9 +24,10 @@ on each element, reset with the seeds :func:`covers_dist.evaluation.protocol.eva
 (tagged apart from training seeds; the same on every element, for every contender and at every
 point), greedy actions; an episode succeeds when ``info["success"]`` was ever true (its maximum
 over the steps, as covers-dist's rollouts count it); a transform's success is the mean over its
-episodes. Before each evaluation the covers loop drains the update in flight (its time counts as
-training) and the policy's newest published weights are loaded into a fresh copy of the config's
-network. Each transform is evaluated with the policy the bank would choose from the evaluation
+episodes. Before each evaluation the covers loop waits for the update in flight (its time counts
+as training) and its weights, the newest, are loaded into a fresh copy of the config's network
+without being published, so the run trains exactly as it would without the evaluation (the same
+seed gives the same run whatever ``--eval-every``). Each transform is evaluated with the policy the bank would choose from the evaluation
 episodes' first frames (``what_if``, the bank unchanged; when it would create a new policy, the
 nearest one), which is the only policy when the bank holds one. RLlib is evaluated with the
 local env runner's module (:meth:`Algorithm.get_module`, synced after every ``train()``):
@@ -34,7 +35,7 @@ local env runner's module (:meth:`Algorithm.get_module`, synced after every ``tr
 to the action space as RLlib's own connector does when it acts.
 
 **Clock**: ``train_wall_s`` counts the seconds spent in training calls (``Trainer.step`` and
-``drain``, ``Algorithm.train``), not the start-up (actors, learners, env runners; reported as
+the wait for the update in flight, ``Algorithm.train``), not the start-up (actors, learners, env runners; reported as
 ``setup_s``) nor the evaluations (``eval_s``). ``--budget-minutes`` bounds that training clock.
 
 **Separate invocations** (``--merge A/result.json B/result.json``): contenders run apart (say
@@ -280,6 +281,7 @@ class _CoversContender:
         if getattr(backend, "name", "") == "ray":  # wait until the rollout actors are up: start-up, not training
             backend.ray.get([w.stats.remote() for w in backend.workers])
         self._models: dict[int, tuple[int, Any, ActFn]] = {}  # policy id -> (loaded version, model, actor)
+        self._weights: dict[int, tuple[int, Any]] = {}  # what the evaluation acts with (before_eval)
 
     @property
     def env_steps(self) -> int:
@@ -291,33 +293,35 @@ class _CoversContender:
             self.trainer.write_iteration(self.writer, row)
 
     def before_eval(self) -> None:
-        self.trainer.drain()  # the update in flight lands and is published
+        # the newest weights, without publishing the update in flight: training goes on exactly as
+        # it would without this evaluation (the run does not depend on --eval-every)
+        self._weights = self.trainer.newest_weights()
 
     def _actor(self, pid: int) -> ActFn:
         from ..models import build_actor_critic
         from ..runtime.ray_setup import resolve_weights
 
-        version = self.trainer.versions[pid]
+        version, handle = self._weights[pid]
         loaded = self._models.get(pid)
         if loaded is None or loaded[0] != version:
             model = loaded[1] if loaded is not None else build_actor_critic(self.cfg.network, self.layout, seed=0)
-            model.set_weights(resolve_weights(self.trainer.handles[pid]))
+            model.set_weights(resolve_weights(handle))
             model.eval()
             self._models[pid] = (version, model, covers_actor(model))
         return self._models[pid][2]
 
     def policy_for(self, first_frames: Mapping[str, np.ndarray]) -> int:
         """The policy the bank would pick for these first frames (the only one when it holds one)."""
-        policies = sorted(self.trainer.versions)
+        policies = sorted(self._weights)
         if len(policies) == 1:
             return policies[0]
         n = len(first_frames["image"])
         record = self.trainer.backend.call_clustering("what_if", dict(first_frames), [0] * n, policies)
         pid = int(record["policy_id"])
-        if pid in self.trainer.versions:
+        if pid in self._weights:
             return pid
         dists = {int(k): float(v) for k, v in (record.get("distances") or {}).items() if v is not None}
-        dists = {k: v for k, v in dists.items() if k in self.trainer.versions}
+        dists = {k: v for k, v in dists.items() if k in self._weights}
         return min(dists, key=lambda k: dists[k]) if dists else int(self.trainer.current_policy)
 
     def chooser(self) -> Chooser:

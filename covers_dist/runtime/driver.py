@@ -173,6 +173,16 @@ class Trainer:
         self._publish_handle(policy_id, handle)
         return stats
 
+    def newest_weights(self) -> dict[int, tuple[int, Any]]:
+        """``{policy id: (version, handle)}`` of every policy's newest weights, the update still in
+        flight included: it is waited for but not published, so training's schedule is unchanged
+        (its version is negative: never one that workers hold). What evaluation acts with."""
+        weights_map = {pid: (self.versions[pid], self.handles[pid]) for pid in self.versions}
+        done = self._complete_pending()
+        if done is not None:
+            weights_map[done[0]] = (-(self.weight_version + 1), done[2])
+        return weights_map
+
     def drain(self) -> dict[str, Any]:
         """Finish and publish the update still in flight (pipelined loop); its statistics ({} if none)."""
         return self._finish_update()
@@ -406,12 +416,7 @@ class Trainer:
     # ---- evaluation ------------------------------------------------------------------------------
     def start_evaluation(self) -> None:
         """Evaluate every (task, g) with the bank as it is now (serial: in place; Ray: in the background)."""
-        weights_map = {pid: (self.versions[pid], self.handles[pid]) for pid in self.versions}
-        done = self._complete_pending()
-        if done is not None:
-            # the newest weights, the update still in flight included; they are not published, so
-            # training's schedule is unchanged (a negative version: never one that workers hold)
-            weights_map[done[0]] = (-(self.weight_version + 1), done[2])
+        weights_map = self.newest_weights()
         confusion = self.backend.call_clustering("metrics").get("confusion", {})
         info = {
             "iteration": self.iteration,
