@@ -27,16 +27,18 @@ over the steps, as covers-dist's rollouts count it); a transform's success is th
 episodes. Before each evaluation the covers loop waits for the update in flight (its time counts
 as training) and its weights, the newest, are loaded into a fresh copy of the config's network
 without being published, so the run trains exactly as it would without the evaluation (the same
-seed gives the same run whatever ``--eval-every``). Each transform is evaluated with the policy the bank would choose from the evaluation
-episodes' first frames (``what_if``, the bank unchanged; when it would create a new policy, the
-nearest one), which is the only policy when the bank holds one. RLlib is evaluated with the
+seed gives the same run whatever ``--eval-every``). Each transform is evaluated with the policy
+the bank would choose from the evaluation episodes' first frames (``what_if``, the bank unchanged;
+when it would create a new policy, the nearest one), which is the only policy when the bank holds
+one. RLlib is evaluated with the
 local env runner's module (:meth:`Algorithm.get_module`, synced after every ``train()``):
 ``forward_inference`` gives the Gaussian's ``[mean, log_std]``; the mean is unsquashed and clipped
 to the action space as RLlib's own connector does when it acts.
 
 **Clock**: ``train_wall_s`` counts the seconds spent in training calls (``Trainer.step`` and
-the wait for the update in flight, ``Algorithm.train``), not the start-up (actors, learners, env runners; reported as
-``setup_s``) nor the evaluations (``eval_s``). ``--budget-minutes`` bounds that training clock.
+the wait for the update in flight, ``Algorithm.train``), not the start-up (actors, learners, env
+runners; reported as ``setup_s``) nor the evaluations (``eval_s``). ``--budget-minutes`` bounds
+that training clock.
 
 **Separate invocations** (``--merge A/result.json B/result.json``): contenders run apart (say
 ``covers`` first, ``cnn,rllib`` later) are joined into one result with its ratios and curves,

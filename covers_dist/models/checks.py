@@ -92,7 +92,9 @@ def check_same_function(probes: Mapping[str, np.ndarray]) -> None:
     for name, out in items[1:]:
         out = np.asarray(out, np.float64)
         if out.shape != np.shape(ref):
-            raise RuntimeError(f"{name} builds a different network from {ref_name}: probe shapes {out.shape} vs {np.shape(ref)}")
+            raise RuntimeError(
+                f"{name} builds a different network from {ref_name}: probe shapes {out.shape} vs {np.shape(ref)}"
+            )
         err = relative_error(out, ref)
         if err > PROBE_TOLERANCE:
             raise RuntimeError(

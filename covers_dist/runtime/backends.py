@@ -160,7 +160,8 @@ class RayBackend:
         self._spare: dict[int, Any] = {}  # learners started ahead of their policy (prepare_learner)
         self._eval: RayEvalExecutors | None = None
         self._probes: dict[str, Any] = {}
-        self._check_probes({f"rollout worker {i}": w for i, w in enumerate(self.workers)} | {"clustering actor": self.clustering})
+        actors = {f"rollout worker {i}": w for i, w in enumerate(self.workers)}
+        self._check_probes({**actors, "clustering actor": self.clustering})
 
     def _check_probes(self, actors: dict[str, Any]) -> None:
         """Every actor must compute the same function of the same weights as those checked before
