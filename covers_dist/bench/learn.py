@@ -30,10 +30,9 @@ without being published, so the run trains exactly as it would without the evalu
 seed gives the same run whatever ``--eval-every``). Each transform is evaluated with the policy
 the bank would choose from the evaluation episodes' first frames (``what_if``, the bank unchanged;
 when it would create a new policy, the nearest one), which is the only policy when the bank holds
-one. RLlib is evaluated with the
-local env runner's module (:meth:`Algorithm.get_module`, synced after every ``train()``):
-``forward_inference`` gives the Gaussian's ``[mean, log_std]``; the mean is unsquashed and clipped
-to the action space as RLlib's own connector does when it acts.
+one. RLlib is evaluated with the local env runner's module (:meth:`Algorithm.get_module`, synced
+after every ``train()``): ``forward_inference`` gives the Gaussian's ``[mean, log_std]``; the mean
+is unsquashed and clipped to the action space as RLlib's own connector does when it acts.
 
 **Clock**: ``train_wall_s`` counts the seconds spent in training calls (``Trainer.step`` and
 the wait for the update in flight, ``Algorithm.train``), not the start-up (actors, learners, env
