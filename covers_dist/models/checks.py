@@ -20,7 +20,7 @@ from ..symmetry import GroupElement, get_group
 if TYPE_CHECKING:  # pragma: no cover
     from .actor_critic import ActorCritic
 
-__all__ = ["PROBE_TOLERANCE", "check_same_function", "equivariance_errors", "relative_error"]
+__all__ = ["PROBE_TOLERANCE", "check_same_function", "equivariance_errors", "relative_error", "same_function"]
 
 #: Largest relative difference between two processes' probe outputs still taken as the same function
 #: (float rounding across thread counts is ~1e-6; a different escnn basis differs by ~1e-1).
@@ -78,6 +78,13 @@ def max_error(errors: dict[str, dict[str, float]], skip_identity: bool = True) -
     return max(v for name, row in errors.items() if not (skip_identity and name == e) for v in row.values())
 
 
+def same_function(out: Any, ref: Any) -> bool:
+    """Whether two :meth:`ActorCritic.probe_outputs` arrays show the same function (same shape,
+    relative difference within :data:`PROBE_TOLERANCE`)."""
+    out, ref = np.asarray(out, np.float64), np.asarray(ref, np.float64)
+    return out.shape == ref.shape and relative_error(out, ref) <= PROBE_TOLERANCE
+
+
 def check_same_function(probes: Mapping[str, np.ndarray]) -> None:
     """Raise ``RuntimeError`` unless every process's :meth:`ActorCritic.probe_outputs` matches the first.
 
@@ -95,8 +102,8 @@ def check_same_function(probes: Mapping[str, np.ndarray]) -> None:
             raise RuntimeError(
                 f"{name} builds a different network from {ref_name}: probe shapes {out.shape} vs {np.shape(ref)}"
             )
-        err = relative_error(out, ref)
-        if err > PROBE_TOLERANCE:
+        if not same_function(out, ref):
+            err = relative_error(out, ref)
             raise RuntimeError(
                 f"{name} and {ref_name} compute different functions of the same weights (relative difference "
                 f"{err:.2g} > {PROBE_TOLERANCE:g}): a constant of the network is built differently per process "

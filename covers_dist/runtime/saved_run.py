@@ -41,9 +41,7 @@ def probe_mismatch(saved: Any, current: Any, cfg: Config) -> str | None:
     process's. Checkpoints written before the probe was saved have none: an equivariant network
     with a space-to-depth stem had, then, a first-layer basis drawn anew in every process.
     """
-    import numpy as np
-
-    from ..models.checks import PROBE_TOLERANCE, relative_error
+    from ..models.checks import same_function
 
     if saved is None:
         if cfg.network.kind == "equivariant" and cfg.network.space_to_depth > 1:
@@ -52,9 +50,7 @@ def probe_mismatch(saved: Any, current: Any, cfg: Config) -> str | None:
                 "(space_to_depth stem) was drawn per process then, so its policies act differently here"
             )
         return None
-    saved = np.asarray(saved, np.float64)
-    current = np.asarray(current, np.float64)
-    if saved.shape != current.shape or relative_error(current, saved) > PROBE_TOLERANCE:
+    if not same_function(current, saved):
         return (
             "this process builds the network differently from the run that wrote it (another escnn or "
             "covers-dist version?): the same weights compute another function here"
