@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from covers_dist.bench.learn import GreedyEvaluator, covers_actor, race, ratios
+from covers_dist.bench.learn import GroupEvaluation, peer_budget, race, ratios
 from covers_dist.config import config_to_dict, load_config
 from covers_dist.symmetry import get_group
 
@@ -42,7 +42,8 @@ def _learn(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess:
         (["--task", "no-such-task"], ["unknown", "no-such-task", "reach", "push", "avoid"]),
         (["--threshold", "1.5"], ["--threshold", "(0, 1]"]),
         (["--threshold", "0"], ["--threshold"]),
-        (["--contenders", "covers,tf-agents"], ["unknown contender", "tf-agents", "rllib"]),
+        (["--contenders", "covers,tf-agents"], ["unknown contender", "tf-agents", "rllib-equi", "sb3"]),
+        (["--peer-budget-factor", "0.5"], ["--peer-budget-factor", ">= 1"]),
         (["--eval-every", "0"], ["--eval-every", ">= 1"]),
         (["--keep-runs"], ["--keep-runs", "--out"]),
     ],
@@ -61,16 +62,21 @@ def test_bad_arguments_are_one_line_errors(argv, words):
 def test_short_serial_covers_run_writes_curves(tmp_path):
     out = tmp_path / "out"
     res = _learn("--task", "reach", "--contenders", "covers", "--serial", "--budget-steps", "2000",
-                 "--eval-every", "1000", "--set", "ppo.epochs=1", "--json", "--out", str(out), "--keep-runs")  # fmt: skip
+                 "--eval-every", "1000", "--eval-episodes", "2", "--set", "ppo.epochs=1", "--json", "--out", str(out),
+                 "--keep-runs")  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads(res.stdout.strip().splitlines()[-1])
     assert result["task"] == "reach" and result["group"] == "D4" and result["transforms"] == D4
     assert result["threshold"] == 0.9 and result["budget"]["env_steps"] == 2000
     assert set(result["contenders"]) == {"covers"}
-    assert set(result["ratios"]) >= {"covers_wall_vs_rllib", "covers_steps_vs_rllib", "covers_wall_vs_cnn"}
+    assert result["ratios"] == {}  # nothing to compare with
+    assert result["eval"]["episodes_per_transform"] == 2
     covers = result["contenders"]["covers"]
     for key in ("reached", "env_steps_to_threshold", "wall_s_to_threshold", "best_min_success", "curve"):
         assert key in covers
+    hp = covers["hyperparameters"]
+    assert hp["framework"] == "covers-dist" and hp["epochs"] == 1 and hp["value_clip"] is None
+    assert hp["train_batch_env_steps"] == 16 * 25 and hp["reward"]["normalize_return"] is True
     curve = covers["curve"]
     assert len(curve) >= 2
     steps = [p["env_steps"] for p in curve]
@@ -80,6 +86,8 @@ def test_short_serial_covers_run_writes_curves(tmp_path):
     for p in curve:
         assert sorted(p["success"]) == sorted(D4)
         assert all(0.0 <= v <= 1.0 for v in p["success"].values())
+        assert p["distinct_initial_states"] == 8 * 2 and p["episodes_per_transform"] == 2
+        assert all(lo <= p["success"][g] <= hi for g, (lo, hi) in p["ci95"].items())
         assert p["min_success"] == min(p["success"].values())
         assert p["mean_success"] == pytest.approx(np.mean(list(p["success"].values())))
     if covers["reached"]:
@@ -101,42 +109,66 @@ def test_short_serial_covers_run_writes_curves(tmp_path):
 
 
 # ---- evaluation, stopping rules, ratios --------------------------------------------------------------
-def test_greedy_evaluation_is_deterministic_and_covers_every_transform(one_torch_thread):
+class _ModelContender:
+    """A fixed covers-dist network as the only policy."""
+
+    def __init__(self, model) -> None:
+        self.model = model
+        self.calls: list[int] = []
+
+    def weights_map(self):
+        return {0: (0, self.model.get_weights())}
+
+    def choose(self, obs, group_ids):
+        self.calls.append(len(obs["image"]))
+        return {"policy_id": 0, "decision": "only", "nearest_distance": None}
+
+
+def test_group_evaluation_is_deterministic_and_uses_distinct_states(one_torch_thread):
     from covers_dist.envs import suite_layout
     from covers_dist.models import build_actor_critic
 
     cfg = load_config("configs/smoke.yaml", ["env.tasks=[reach]"])
     model = build_actor_critic(cfg.network, suite_layout("toy", cfg.env.image_size), seed=3).eval()
-    evaluator = GreedyEvaluator(cfg.env, "reach", D4, episodes=2, seed=cfg.seed)
-    calls: list[tuple[str, int]] = []
-
-    def choose(g, first):
-        calls.append((g, len(first["image"])))
-        return covers_actor(model), 0
-
+    evaluator = GroupEvaluation(cfg, "reach", D4, episodes=2, seed=cfg.seed)
+    contender = _ModelContender(model)
     try:
-        first, tags = evaluator.evaluate(choose)
-        again, _ = evaluator.evaluate(choose)
+        first = evaluator.evaluate(contender)
+        again = evaluator.evaluate(contender)
     finally:
         evaluator.close()
     assert first == again
-    assert sorted(first) == sorted(D4) and all(0.0 <= v <= 1.0 for v in first.values())
-    assert tags == {g: 0 for g in D4}
-    assert sorted(calls) == sorted([(g, 2) for g in D4] * 2)  # one choice per transform, from its 2 first frames
+    assert sorted(first["success"]) == sorted(D4) and all(0.0 <= v <= 1.0 for v in first["success"].values())
+    assert first["policy"] == {g: 0 for g in D4}
+    assert contender.calls == [2] * 16  # one choice per transform and pass, from its 2 first frames
+    assert first["distinct_initial_states"] == 16 and first["episodes_per_transform"] == 2
 
 
-def test_greedy_evaluation_counts_success_ever_reached():
+def test_group_evaluation_counts_success_ever_reached_and_refuses_sampling_a_greedy_adapter():
+    from covers_dist.evaluation.episodes import GreedyPolicy
+
     cfg = load_config("configs/smoke.yaml", ["env.tasks=[reach]"])
-    evaluator = GreedyEvaluator(cfg.env, "reach", ["e", "r"], episodes=2, seed=0)
+    evaluator = GroupEvaluation(cfg, "reach", ["e", "r"], episodes=2, seed=0)
+
+    class Still:
+        choose = staticmethod(lambda obs, gids: {"policy_id": 0, "decision": "only", "nearest_distance": None})
+
+        def weights_map(self):
+            return {0: (0, GreedyPolicy(lambda obs: np.zeros((len(obs["image"]), 2), np.float32)))}
+
     try:
-        still, _ = evaluator.evaluate(lambda g, first: (lambda obs: np.zeros((len(obs["image"]), 2), np.float32), g))
+        still = evaluator.evaluate(Still())
     finally:
         evaluator.close()
-    assert still == {"e": 0.0, "r": 0.0}  # standing still never reaches the goal
+    assert still["success"] == {"e": 0.0, "r": 0.0}  # standing still never reaches the goal
+    assert still["ci95"]["e"][0] == 0.0 and 0.0 < still["ci95"]["e"][1] < 1.0
+    with pytest.raises(ValueError, match="greedily only"):
+        GreedyPolicy(lambda obs: obs["proprio"]).act({"image": None, "proprio": np.zeros((1, 2))}, deterministic=False)
 
 
 def test_covers_evaluates_each_transform_with_the_policy_the_bank_picks(tmp_path, one_torch_thread):
     from covers_dist.bench.learn import _CoversContender
+    from covers_dist.evaluation.protocol import pair_seeds
 
     # a tiny threshold: every iteration creates a policy, so the bank holds several
     cfg = load_config("configs/smoke.yaml", [
@@ -144,21 +176,21 @@ def test_covers_evaluates_each_transform_with_the_policy_the_bank_picks(tmp_path
         "network.kind=cnn", "clustering.threshold=0.000001", "ppo.epochs=1", f"runtime.run_dir={tmp_path}",
     ])  # fmt: skip
     contender = _CoversContender(cfg)
-    evaluator = GreedyEvaluator(cfg.env, "reach", D4, episodes=2, seed=cfg.seed)
+    evaluator = GroupEvaluation(cfg, "reach", D4, episodes=2, seed=cfg.seed)
     try:
         for _ in range(3):
             contender.train_once()
         contender.before_eval()
         policies = sorted(contender.trainer.versions)
         assert len(policies) > 1 and contender.env_steps == 3 * 16 * 25
-        success, chosen = evaluator.evaluate(contender.chooser())
-        assert sorted(success) == sorted(D4) and set(chosen.values()) <= set(policies)
-        for g in D4:  # the bank's what-if choice (its nearest policy where it would create one)
-            frames = [evaluator._env(g, i).reset(seed=seed)[0] for i, seed in enumerate(evaluator.seeds)]
-            first = {k: np.stack([f[k] for f in frames]) for k in ("image", "proprio")}
-            assert contender.policy_for(first) == chosen[g]
-        again, chosen_again = evaluator.evaluate(contender.chooser())
-        assert (again, chosen_again) == (success, chosen) and len(contender._models) <= len(policies)
+        out = evaluator.evaluate(contender)
+        chosen = out["policy"]
+        assert sorted(out["success"]) == sorted(D4) and set(chosen.values()) <= set(policies)
+        worker = evaluator.executors.workers[0]
+        for pair in evaluator.pairs:  # the bank's what-if choice (its nearest policy where it would create one)
+            first = worker.eval_first_frames([(pair, pair_seeds(cfg.seed, pair, 2))])[0]
+            assert contender.choose(first, [0, 0])["policy_id"] == chosen[pair.g]
+        assert evaluator.evaluate(contender) == out
     finally:
         evaluator.close()
         contender.close()
@@ -176,13 +208,13 @@ def test_covers_training_does_not_depend_on_when_it_is_evaluated(tmp_path, one_t
             "runtime.pipeline=true", f"runtime.run_dir={tmp_path / name}",
         ])  # fmt: skip
         contender = _CoversContender(cfg)
-        evaluator = GreedyEvaluator(cfg.env, "reach", D4[:2], episodes=1, seed=cfg.seed)
+        evaluator = GroupEvaluation(cfg, "reach", D4[:2], episodes=1, seed=cfg.seed)
         try:
             for _ in range(4):
                 contender.train_once()
                 if evaluate:
                     contender.before_eval()
-                    evaluator.evaluate(contender.chooser())
+                    evaluator.evaluate(contender)
             version, weights = contender.trainer.backend.call_learner(0, "weights")
             runs.append((version, contender.trainer.versions[0], weights))
         finally:
@@ -194,8 +226,8 @@ def test_covers_training_does_not_depend_on_when_it_is_evaluated(tmp_path, one_t
 
 
 class _FakeContender:
-    def __init__(self, per_iter: int, success_at: int | None) -> None:
-        self.env_steps, self.per_iter, self.success_at = 0, per_iter, success_at
+    def __init__(self, per_iter: int, success_at: int | None, lucky_at: int | None = None) -> None:
+        self.env_steps, self.per_iter, self.success_at, self.lucky_at = 0, per_iter, success_at, lucky_at
         self.drains = 0
 
     def train_once(self) -> None:
@@ -204,32 +236,37 @@ class _FakeContender:
     def before_eval(self) -> None:
         self.drains += 1
 
-    def chooser(self):
-        return self.env_steps  # the fake evaluator reads it
-
     def extra(self):
         return {}
 
 
 class _FakeEvaluator:
-    def __init__(self, contender: _FakeContender) -> None:
-        self.contender = contender
+    def evaluate(self, contender):
+        steps = contender.env_steps
+        hit = (contender.success_at is not None and steps >= contender.success_at) or steps == contender.lucky_at
+        success = {g: (1.0 if hit else 0.5 if g == "e" else 0.0) for g in D4}
+        return {"success": success, "ci95": {g: [0.0, 1.0] for g in D4}, "policy": {g: 0 for g in D4},
+                "episodes_per_transform": 16, "distinct_initial_states": 128}  # fmt: skip
 
-    def evaluate(self, steps):
-        hit = self.contender.success_at is not None and steps >= self.contender.success_at
-        return {g: (1.0 if hit else 0.5 if g == "e" else 0.0) for g in D4}, {g: 0 for g in D4}
 
-
-def test_race_stops_at_the_threshold_or_the_budget():
+def test_race_is_solved_at_two_evaluations_in_a_row_or_stops_at_the_budget():
     fast = _FakeContender(per_iter=300, success_at=1500)
-    res = race("fake", fast, _FakeEvaluator(fast), 0.9, 1000, 10_000, 600.0, log=lambda _: None)
+    res = race("fake", fast, _FakeEvaluator(), 0.9, 1000, 10_000, 600.0, log=lambda _: None)
     assert res["reached"] and res["stopped"] == "threshold"
-    assert [p["env_steps"] for p in res["curve"]] == [0, 1200, 2100]  # first evaluation past each multiple
-    assert res["env_steps_to_threshold"] == 2100 and res["best_min_success"] == 1.0
-    assert fast.drains == 3 and fast.env_steps == 2100  # stops training at once
+    assert [p["env_steps"] for p in res["curve"]] == [0, 1200, 2100, 3000]  # first evaluation past each multiple
+    assert [p["held"] for p in res["curve"]] == [0, 0, 1, 2]
+    assert res["env_steps_to_threshold"] == 3000 and res["first_met_env_steps"] == 2100
+    assert res["best_min_success"] == 1.0
+    assert fast.drains == 4 and fast.env_steps == 3000  # stops training at once
+    assert all(p["distinct_initial_states"] == 128 for p in res["curve"])
+
+    # one lucky point on the curve does not solve the run
+    lucky = _FakeContender(per_iter=300, success_at=None, lucky_at=1200)
+    res = race("fake", lucky, _FakeEvaluator(), 0.9, 1000, 3000, 600.0, log=lambda _: None)
+    assert not res["reached"] and res["best_min_success"] == 1.0 and res["stopped"] == "steps"
 
     slow = _FakeContender(per_iter=400, success_at=None)
-    res = race("fake", slow, _FakeEvaluator(slow), 0.9, 1000, 1500, 600.0, log=lambda _: None)
+    res = race("fake", slow, _FakeEvaluator(), 0.9, 1000, 1500, 600.0, log=lambda _: None)
     assert not res["reached"] and res["stopped"] == "steps" and res["env_steps_to_threshold"] is None
     assert [p["env_steps"] for p in res["curve"]] == [0, 1200, 1600]  # the budget's end is evaluated too
     assert res["best_min_success"] == 0.0 and res["best_mean_success"] == pytest.approx(0.5 / 8)
@@ -238,10 +275,20 @@ def test_race_stops_at_the_threshold_or_the_budget():
 def test_ratios_need_both_contenders_to_reach():
     done = {"reached": True, "wall_s_to_threshold": 10.0, "env_steps_to_threshold": 4000}
     other = {"reached": True, "wall_s_to_threshold": 40.0, "env_steps_to_threshold": 8000}
-    r = ratios({"covers": done, "rllib": other, "cnn": {"reached": False}})
-    assert r["covers_wall_vs_rllib"] == 0.25 and r["covers_steps_vs_rllib"] == 0.5
+    r = ratios({"covers": done, "rllib-equi": other, "cnn": {"reached": False}})
+    assert r["covers_wall_vs_rllib_equi"] == 0.25 and r["covers_steps_vs_rllib_equi"] == 0.5
     assert r["covers_wall_vs_cnn"] is None and r["covers_steps_vs_cnn"] is None
-    assert ratios({"covers": done})["covers_wall_vs_rllib"] is None
+    assert ratios({"covers": done}) == {}
+
+
+def test_peers_get_a_multiple_of_what_covers_needed():
+    import argparse
+
+    args = argparse.Namespace(budget_steps=200_000, budget_minutes=10.0, peer_budget_factor=4.0)
+    assert peer_budget(args, None) == (200_000, 10.0)
+    assert peer_budget(args, {"reached": False}) == (200_000, 10.0)
+    solved = {"reached": True, "env_steps_to_threshold": 120_000, "wall_s_to_threshold": 600.0}
+    assert peer_budget(args, solved) == (480_000, 40.0)
 
 
 # ---- RLlib's env on the group's transforms --------------------------------------------------------------
@@ -275,14 +322,25 @@ def test_image_only_task_draws_transforms_from_the_reset_seed():
         ImageOnlyTask({"config": config_to_dict(cfg), "task": "reach", "transforms": []})
 
 
-def test_short_rllib_run(tmp_path):
-    res = _learn("--task", "reach", "--contenders", "rllib", "--budget-steps", "400", "--eval-every", "400",
-                 "--set", "runtime.num_workers=1", "--json", timeout=300)  # fmt: skip
+def test_short_peer_runs_on_equal_terms():
+    """RLlib on the project's CNN twin and SB3's PPO, one iteration each: the same PPO settings as
+    covers-dist, read back from the built algorithms, and the same evaluation."""
+    res = _learn("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every", "400",
+                 "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=64",
+                 "--json", timeout=400)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
-    rllib = json.loads(res.stdout.strip().splitlines()[-1])["contenders"]["rllib"]
-    assert [p["env_steps"] for p in rllib["curve"]] == [0, 400]
-    assert all(sorted(p["success"]) == sorted(D4) for p in rllib["curve"])
-    assert rllib["backend"] == "rllib" and rllib["setup_s"] > 0
+    result = json.loads(res.stdout.strip().splitlines()[-1])
+    for name, framework in (("rllib-cnn", "rllib"), ("sb3", "stable-baselines3")):
+        entry = result["contenders"][name]
+        assert entry["backend"] in ("rllib", "sb3") and entry["setup_s"] > 0
+        assert [p["env_steps"] for p in entry["curve"]] == [0, 400]
+        assert all(sorted(p["success"]) == sorted(D4) and p["distinct_initial_states"] == 8 for p in entry["curve"])
+        hp = entry["hyperparameters"]
+        assert hp["framework"] == framework and hp["observation"] == "image + proprio"
+        assert (hp["train_batch_env_steps"], hp["epochs"], hp["minibatch_size"]) == (16 * 25, 4, 200)
+        assert (hp["lr"], hp["gamma"], hp["gae_lambda"], hp["clip"]) == (1e-3, 0.99, 0.95, 0.2)
+        assert hp["value_clip"] is None and hp["kl_loss"] is False and hp["max_grad_norm"] == 0.5
+        assert hp["reward"]["scale"] == 0.1 and hp["reward"]["normalize_return"] is True
 
 
 # ---- joining separate invocations --------------------------------------------------------------------

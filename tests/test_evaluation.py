@@ -30,6 +30,7 @@ from covers_dist.evaluation.protocol import EvalPair, pair_rows, plan_jobs
 from covers_dist.runtime import driver as driver_module
 from covers_dist.runtime.driver import Trainer
 from covers_dist.runtime.rollout import episode_seed
+from covers_dist.symmetry import get_group
 
 TASKS = ["reach", "push", "avoid"]
 # 3 iterations of 8 episodes x 25 steps; 24 (task, g) pairs, 2 of them held out
@@ -227,10 +228,10 @@ def test_read_passes_names_a_corrupt_line_and_keeps_the_newest_pass_per_iteratio
 # ---- the protocol ------------------------------------------------------------------------------------
 def test_eval_seeds_are_deterministic_and_never_training_seeds():
     training = {episode_seed(seed, i) for seed in (0, 1) for i in range(5000)}
-    ours = [eval_seed(seed, g, k) for seed in (0, 1) for g in range(3) for k in range(16)]
+    ours = [eval_seed(seed, g, j, k) for seed in (0, 1) for g in range(3) for j in range(8) for k in range(16)]
     assert not training & set(ours)
-    assert len(set(ours)) == len(ours)
-    assert ours == [eval_seed(seed, g, k) for seed in (0, 1) for g in range(3) for k in range(16)]
+    assert len(set(ours)) == len(ours)  # every (run seed, group, element, episode) its own initial state
+    assert ours == [eval_seed(seed, g, j, k) for seed in (0, 1) for g in range(3) for j in range(8) for k in range(16)]
 
 
 def test_eval_pairs_mark_held_out_seen_and_unseen_as_the_stream_does():
@@ -275,14 +276,20 @@ def test_plan_jobs_runs_a_policy_chosen_by_both_selections_once():
         (b.key, 2, "greedy", ["oracle"]),
         (b.key, 2, "stochastic", ["oracle"]),
     ]  # c: no policy for its group and none chosen: nothing to run
-    assert jobs[0].seeds == [eval_seed(7, 0, k) for k in range(3)]
-    # every element of a group runs the same instances (g.T is the exact transform of T)
+    assert jobs[0].seeds == [eval_seed(7, 0, 0, k) for k in range(3)]
+    # every element of a group runs its own instances: a group's figure rests on |G| x episodes states
     same_group = plan_jobs([a, EvalPair("reach", "r", 0, 1, "unseen")], {}, {0: 1}, run_seed=7, episodes=3)
-    assert same_group[0].seeds == same_group[2].seeds == jobs[0].seeds
-    assert jobs[2].seeds == [eval_seed(7, 1, k) for k in range(3)] != jobs[0].seeds
-    outcomes = [{"success": [1.0, 0.0, 0.0], "return": [3.0, 0.0, 0.0]}] * len(jobs)
+    assert same_group[0].seeds == jobs[0].seeds
+    assert same_group[2].seeds == [eval_seed(7, 0, 1, k) for k in range(3)]
+    assert not set(same_group[2].seeds) & set(jobs[0].seeds)
+    assert jobs[2].seeds == [eval_seed(7, 1, 1, k) for k in range(3)] != jobs[0].seeds
+    outcomes = [{"success": [1.0, 0.0, 0.0], "return": [3.0, 0.0, 0.0], "state_key": ["s1", "s2", "s2"]}] * len(jobs)
     rows = pair_rows([a, b, c], jobs, outcomes, {}, {0: 1, 1: 2})
     assert set(rows[0]["results"]) == KEYS and rows[0]["results"]["greedy/oracle"]["success"] == pytest.approx(1 / 3)
+    first = rows[0]["results"]["greedy/oracle"]
+    assert (first["n"], first["successes"], first["distinct_initial_states"]) == (3, 1, 2)
+    lo, hi = first["ci95"]
+    assert 0.0 < lo < 1 / 3 < hi < 1.0
     assert set(rows[1]["results"]) == KEYS and rows[1]["results"]["greedy/oracle"]["policy_id"] == 2
     assert rows[2]["results"] == {} and rows[2]["oracle_policy"] is None
 
@@ -396,11 +403,12 @@ def test_training_writes_passes_every_two_iterations_and_at_the_end(runs):
                 assert res["policy_id"] == r["agnostic_policy" if key.endswith("agnostic") else "oracle_policy"]
             jobs += 2 * len({r["agnostic_policy"], r["oracle_policy"]} - {None})
         assert ev["eval_episodes"] == 2 * jobs
-    # every element of a group runs the same seeds, so the one (exactly D4-equivariant) oracle policy
-    # acting greedily gets the same return on every g of a group, held-out ones included
-    for task in ("reach", "push"):
-        returns = [r["results"]["greedy/oracle"]["return"] for r in passes[-1]["pairs"] if r["task"] == task]
-        assert len(returns) == 8 and returns == pytest.approx([returns[0]] * 8, abs=1e-3)
+    # every (pair, episode) starts from its own state: 16 pairs x 2 episodes, counted by fingerprint
+    for ev in passes:
+        assert ev["distinct_initial_states"] == 16 * 2
+        for r in ev["pairs"]:
+            for res in r["results"].values():
+                assert res["n"] == 2 and res["distinct_initial_states"] == 2 and len(res["ci95"]) == 2
     metric_rows = lines(on / "metrics.jsonl")
     assert [r["iteration"] for r in metric_rows] == [1, 2, 3, 3]  # the last iteration again, with the final pass
     assert not any(k.startswith("eval/") for k in metric_rows[0])
@@ -408,6 +416,31 @@ def test_training_writes_passes_every_two_iterations_and_at_the_end(runs):
         assert {"eval/average_success", "eval/zero_shot_success", "eval/success/reach"} <= set(r)
     summary = pass_summary(passes[-1])
     assert metric_rows[3]["eval/average_success"] == pytest.approx(summary["average_success"])
+
+
+def test_an_equivariant_policy_scores_the_same_on_every_transform_of_one_state(one_torch_thread):
+    """Reset with the same seed, g.T is the exact transform of T: the one D4-equivariant network
+    acting greedily gets the same success and return on every g, and every g's initial state has
+    the same fingerprint (the evaluation's own seeds differ per g on purpose; this test does not)."""
+    from covers_dist.config import load_config
+    from covers_dist.evaluation.protocol import EvalJob
+    from covers_dist.runtime.rollout import RolloutWorker
+
+    cfg = load_config("configs/smoke.yaml", ["env.tasks=[reach, push]"])
+    worker = RolloutWorker(cfg)
+    weights = worker.model.get_weights()
+    seeds = [11, 12, 13]
+    try:
+        for task in ("reach", "push"):
+            jobs = [EvalJob(EvalPair(task, g.name, 0, j, "seen"), 0, "greedy", seeds) for j, g in enumerate(get_group("D4"))]
+            out = worker.eval_jobs(jobs, {0: (0, weights)})
+            for res in out[1:]:
+                assert res["success"] == out[0]["success"]
+                assert res["return"] == pytest.approx(out[0]["return"], abs=1e-3)
+                assert res["state_key"] == out[0]["state_key"]
+            assert len(set(out[0]["state_key"])) == len(seeds)
+    finally:
+        worker.close()
 
 
 def test_evaluation_does_not_change_training(runs):

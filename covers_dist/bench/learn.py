@@ -3,44 +3,57 @@
 One task group is one base task (e.g. ``drawer-close-v3``) under every element of the config's
 symmetry group (D4: 8 transformed tasks). Each contender trains on a stream of that task alone,
 every episode under a group element, and is evaluated every ``--eval-every`` env steps with the
-clock paused; it stops once the greedy policy (the Gaussian's mean) succeeds on at least
-``--threshold`` of the evaluation episodes of *every* transform, or when its budget of env steps or
-training minutes is spent. Contenders run one after another, never at once:
+clock paused. It is **solved** once the greedy policy (the Gaussian's mean) succeeds on at least
+``--threshold`` of the evaluation episodes of *every* transform at two consecutive evaluations
+(one lucky point on a noisy curve does not stop a run); otherwise it runs until its budget of env
+steps or training minutes is spent. Contenders run one after another, never at once:
 
 * ``covers``: covers-dist's own loop (:class:`covers_dist.runtime.driver.Trainer`) with the config as
   given (the equivariant network), on Ray (``--serial``: in one process);
 * ``cnn``: the same loop with the CNN twin (``runtime.method=covers-cnn``, ``network.kind=cnn``);
-* ``rllib``: RLlib's PPO with its default CNN on the image alone
-  (:func:`covers_dist.bench.rllib_peer.build_rllib_ppo`), the same batch, epochs, minibatch,
-  learning rate, gamma, lambda and clip, each reset under a random element of the group.
+* ``rllib-cnn``: RLlib's PPO on the project's CNN twin (``CoversRLModule``, image + proprio);
+* ``rllib-equi``: RLlib's PPO on the project's equivariant network (``CoversRLModule``, image + proprio);
+* ``rllib-default``: RLlib's PPO with its default CNN on the image alone, for reference;
+* ``sb3``: Stable-Baselines3's PPO, ``MultiInputPolicy`` on image + proprio
+  (:mod:`covers_dist.bench.sb3_peer`).
+
+Every peer runs on equal terms (:func:`covers_dist.bench.rllib_peer.ppo_settings`): the same batch,
+epochs, minibatch, learning rate, gamma, lambda, clip, gradient clip, entropy and value
+coefficients, covers-dist's reward treatment (scale, return normalisation), no value clip and no
+KL loss unless the config has them. ``result.json`` prints each contender's effective
+``hyperparameters``, read back from the built algorithm. Peers get a budget of at least
+``--peer-budget-factor`` (default 4) times the training time and env steps covers-dist needed
+when ``covers`` ran first in the same invocation and was solved, so a peer's miss is a figure,
+not a bound.
 
 The covers-dist stream is ``env.tasks: [TASK]`` with ``env.episodes_per_task: 1`` and
 ``env.held_out: 0``: every episode is a new segment, and the elements come in seeded shuffles of
 the group (each run of |G| episodes holds every element once; :class:`~covers_dist.envs.stream.TaskStream`).
-RLlib's env draws an element uniformly at each reset, seeded from the reset's seed.
+The peers' envs draw an element uniformly at each reset, seeded from the reset's seed.
 
-**Evaluation** (the same for all contenders, :class:`GreedyEvaluator`): ``--eval-episodes`` episodes
-on each element, reset with the seeds :func:`covers_dist.evaluation.protocol.eval_seed` gives
-(tagged apart from training seeds; the same on every element, for every contender and at every
-point), greedy actions; an episode succeeds when ``info["success"]`` was ever true (its maximum
-over the steps, as covers-dist's rollouts count it); a transform's success is the mean over its
-episodes. Before each evaluation the covers loop waits for the update in flight (its time counts
-as training) and its weights, the newest, are loaded into a fresh copy of the config's network
-without being published, so the run trains exactly as it would without the evaluation (the same
-seed gives the same run whatever ``--eval-every``). Each transform is evaluated with the policy
-the bank would choose from the evaluation episodes' first frames (``what_if``, the bank unchanged;
-when it would create a new policy, the nearest one), which is the only policy when the bank holds
-one. RLlib is evaluated with the local env runner's module (:meth:`Algorithm.get_module`, synced
-after every ``train()``): ``forward_inference`` gives the Gaussian's ``[mean, log_std]``; the mean
-is unsquashed and clipped to the action space as RLlib's own connector does when it acts.
+**Evaluation** (the same for all contenders, :class:`GroupEvaluation`): the project's one evaluator
+(:func:`covers_dist.evaluation.run_evaluation`, episodes by
+:func:`covers_dist.evaluation.episodes.run_eval_episodes`), ``--eval-episodes`` (default 16)
+greedy episodes on each element, each (element, episode) reset with its own seed
+(:func:`covers_dist.evaluation.protocol.eval_seed`; the same seeds at every point and for every
+contender), so a point rests on |G| x episodes distinct initial states; each point records
+``distinct_initial_states`` (counted from the states' fingerprints) and, per transform, its ``n``
+and Wilson 95% interval. An episode succeeds when ``info["success"]`` was ever true. Before each
+evaluation the covers loop waits for the update in flight (its time counts as training) and its
+newest weights act without being published, so the run trains exactly as it would without the
+evaluation. Each transform is evaluated with the policy the bank would choose from the
+evaluation episodes' first frames (``what_if``, the bank unchanged; when it would create a new
+policy, the nearest one). A peer's greedy policy plugs in through
+:class:`~covers_dist.evaluation.episodes.GreedyPolicy`: RLlib's module (``forward_inference``'s
+Gaussian mean, unsquashed and clipped as RLlib's connector does), SB3's ``predict(deterministic=True)``.
 
 **Clock**: ``train_wall_s`` counts the seconds spent in training calls (``Trainer.step`` and
-the wait for the update in flight, ``Algorithm.train``), not the start-up (actors, learners, env
-runners; reported as ``setup_s``) nor the evaluations (``eval_s``). ``--budget-minutes`` bounds
-that training clock.
+the wait for the update in flight, ``Algorithm.train``, ``PPO.learn``), not the start-up (actors,
+learners, env runners; reported as ``setup_s``) nor the evaluations (``eval_s``).
+``--budget-minutes`` bounds that training clock.
 
 **Separate invocations** (``--merge A/result.json B/result.json``): contenders run apart (say
-``covers`` first, ``cnn,rllib`` later) are joined into one result with its ratios and curves,
+``covers`` first, the peers later) are joined into one result with its ratios and curves,
 provided they agree on the task, group, transforms, threshold and evaluation protocol.
 """
 
@@ -60,22 +73,28 @@ from typing import Any, Callable, Mapping, NoReturn, Sequence
 import numpy as np
 
 PROG = "covers-dist bench learn"
-CONTENDERS: tuple[str, ...] = ("covers", "cnn", "rllib")
+CONTENDERS: tuple[str, ...] = ("covers", "cnn", "rllib-cnn", "rllib-equi", "rllib-default", "sb3")
+#: The peers (frameworks other than covers-dist's loop) and what each runs.
+PEERS: dict[str, dict[str, str]] = {
+    "rllib-cnn": {"framework": "rllib", "network": "covers", "kind": "cnn"},
+    "rllib-equi": {"framework": "rllib", "network": "covers", "kind": "equivariant"},
+    "rllib-default": {"framework": "rllib", "network": "default", "kind": ""},
+    "sb3": {"framework": "sb3", "network": "", "kind": ""},
+}
 #: Overrides that turn the config into each covers-dist contender.
 CONTENDER_OVERRIDES: dict[str, list[str]] = {
     "covers": [],
     "cnn": ["runtime.method=covers-cnn", "network.kind=cnn"],
+    "rllib-cnn": ["runtime.method=covers-cnn", "network.kind=cnn"],
 }
-#: Most environments an evaluation steps at once (Meta-World envs hold ~40 MB each).
-EVAL_WAVE = 8
+#: Evaluations in a row that must meet the threshold for a run to count as solved.
+HELD_EVALUATIONS = 2
 
 #: A greedy policy: a batch of observations (``image`` uint8 (B, S, S, 3), ``proprio`` (B, P)) ->
 #: the actions (B, A) to send to the envs.
 ActFn = Callable[[Mapping[str, np.ndarray]], np.ndarray]
-#: Picks the greedy policy of one element from the first frames of its evaluation episodes.
-Chooser = Callable[[str, Mapping[str, np.ndarray]], tuple[ActFn, Any]]
 
-__all__ = ["GreedyEvaluator", "CONTENDERS", "register", "run", "plot_curves", "ratios", "merge_results"]
+__all__ = ["GroupEvaluation", "CONTENDERS", "PEERS", "register", "run", "plot_curves", "ratios", "merge_results"]
 
 
 # ---- the command line --------------------------------------------------------------------------
@@ -92,12 +111,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threshold", type=float, default=0.9,
                    help="success needed on every transform, 0 < t <= 1 (default: 0.9)")  # fmt: skip
     p.add_argument("--eval-every", type=int, default=4000, help="env steps between evaluations (default: 4000)")
-    p.add_argument("--eval-episodes", type=int, default=2, help="greedy episodes per transform (default: 2)")
+    p.add_argument("--eval-episodes", type=int, default=16,
+                   help="greedy episodes per transform, each from its own initial state (default: 16)")  # fmt: skip
     p.add_argument("--budget-steps", type=int, default=200_000, help="env steps per contender (default: 200000)")
     p.add_argument("--budget-minutes", type=float, default=45.0,
                    help="training minutes per contender, evaluations excluded (default: 45)")  # fmt: skip
     p.add_argument("--contenders", default=",".join(CONTENDERS),
                    help="comma-separated subset of: " + ", ".join(CONTENDERS) + " (default: all)")  # fmt: skip
+    p.add_argument("--peer-budget-factor", type=float, default=4.0,
+                   help="when covers ran first here and was solved, each peer's budget is at least this many times "
+                        "covers' training time and env steps (default: 4)")  # fmt: skip
     p.add_argument("--serial", action="store_true", help="covers-dist contenders in one process (runtime.serial)")
     p.add_argument("--json", action="store_true", help="print one JSON object on the last stdout line")
     p.add_argument("--plot", default=None, metavar="PATH.png", help="draw the success curves there")
@@ -125,6 +148,9 @@ def _check_args(args: argparse.Namespace) -> list[str]:
                         ("--budget-steps", args.budget_steps)):  # fmt: skip
         if value < 1:
             _fail(f"{flag} must be >= 1, got {value}")
+    factor = getattr(args, "peer_budget_factor", 4.0)
+    if not (math.isfinite(factor) and factor >= 1.0):
+        _fail(f"--peer-budget-factor must be >= 1, got {factor}")
     if not (math.isfinite(args.budget_minutes) and args.budget_minutes > 0):
         _fail(f"--budget-minutes must be > 0, got {args.budget_minutes}")
     if args.seed is not None and args.seed < 0:
@@ -145,106 +171,67 @@ def _log(line: str) -> None:
 
 
 # ---- evaluation ------------------------------------------------------------------------------
-class GreedyEvaluator:
-    """Greedy episodes of one base task on each group element, with fixed seeds.
+class GroupEvaluation:
+    """``bench learn``'s evaluation of one task group: every element, ``episodes`` greedy episodes each.
 
-    ``episodes`` episodes per element, reset with ``eval_seed(seed, 0, i)`` for episode ``i``
-    (the same instances on every element and at every call). Envs are built once and kept:
-    Meta-World envs switch their element in place (``set_element``), others are kept per element.
-    At most :data:`EVAL_WAVE` envs are stepped together.
+    A thin host around the project's evaluator (:func:`covers_dist.evaluation.run_evaluation` on one
+    in-process :class:`~covers_dist.runtime.rollout.RolloutWorker`): the pairs are (task, g) for
+    every element of the group (group id 0, the stream's only group), reset with the protocol's
+    seeds, a distinct initial state per (element, episode).
     """
 
-    def __init__(self, env_cfg: Any, task: str, elements: Sequence[str], episodes: int, seed: int) -> None:
-        from ..evaluation.protocol import eval_seed
+    def __init__(self, cfg: Any, task: str, elements: Sequence[str], episodes: int, seed: int) -> None:
+        from ..evaluation import LocalExecutors
+        from ..evaluation.protocol import EvalPair
+        from ..runtime.backends import EVAL_WORKER_INDEX
+        from ..runtime.rollout import RolloutWorker
 
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
         if not elements:
             raise ValueError("no group elements to evaluate")
-        self.env_cfg, self.task = env_cfg, task
+        self.task, self.episodes, self.seed = task, int(episodes), int(seed)
         self.elements = [str(g) for g in elements]
-        self.seeds = [eval_seed(seed, 0, i) for i in range(episodes)]  # group 0: the only group of the stream
-        self._pool: dict[int, Any] = {}  # wave slot -> env that can switch its element
-        self._fixed: dict[tuple[str, int], Any] = {}  # (element, slot) -> env of that element
+        self.pairs = [EvalPair(task, g, 0, j, "seen") for j, g in enumerate(self.elements)]
+        self.executors = LocalExecutors([RolloutWorker(cfg, EVAL_WORKER_INDEX)])
 
-    def _env(self, g: str, slot: int) -> Any:
-        from ..envs import make_task
-        from ..symmetry import GroupElement
+    def evaluate(self, contender: Any) -> dict[str, Any]:
+        """One pass with ``contender``'s ``choose`` and ``weights_map()``; per element its success,
+        ``n``, 95% interval and policy, and the pass's ``distinct_initial_states``."""
+        from ..evaluation import run_evaluation
 
-        env = self._pool.get(slot)
-        if env is not None:
-            if env.g.name != g:
-                env.set_element(GroupElement.from_name(g))
-            return env
-        env = self._fixed.get((g, slot))
-        if env is None:
-            env = make_task(self.env_cfg, self.task, g)
-            if hasattr(env, "set_element"):
-                self._pool[slot] = env
-            else:
-                self._fixed[(g, slot)] = env
-        return env
-
-    def evaluate(self, choose: Chooser) -> tuple[dict[str, float], dict[str, Any]]:
-        """``({element: success rate}, {element: what choose() reported for it})``.
-
-        ``choose(element, first_frames)`` returns ``(act, tag)``: the greedy policy for that element
-        and a JSON-safe tag (e.g. a policy id) recorded with the result.
-        """
-        pairs = [(g, i) for g in self.elements for i in range(len(self.seeds))]
-        success: dict[tuple[str, int], float] = {}
-        tags: dict[str, Any] = {}
-        for start in range(0, len(pairs), EVAL_WAVE):
-            wave = pairs[start : start + EVAL_WAVE]
-            envs = [self._env(g, slot) for slot, (g, _) in enumerate(wave)]
-            obs = [env.reset(seed=int(self.seeds[i]))[0] for env, (_, i) in zip(envs, wave)]
-            acts: dict[str, ActFn] = {}
-            for g in dict.fromkeys(g for g, _ in wave):
-                rows = [j for j, (h, _) in enumerate(wave) if h == g]
-                acts[g], tags[g] = choose(g, _stack([obs[j] for j in rows]))
-            best = [0.0] * len(wave)
-            live = list(range(len(wave)))
-            while live:
-                by_policy: dict[int, list[int]] = {}  # one batched call per distinct policy
-                for j in live:
-                    by_policy.setdefault(id(acts[wave[j][0]]), []).append(j)
-                for rows in by_policy.values():
-                    act = acts[wave[rows[0]][0]]
-                    actions = np.asarray(act(_stack([obs[j] for j in rows])), dtype=np.float32)
-                    for j, action in zip(rows, actions):
-                        obs[j], _, terminated, truncated, info = envs[j].step(action)
-                        best[j] = max(best[j], float(info.get("success", 0.0)))
-                        if terminated or truncated:
-                            live.remove(j)
-            for j, key in enumerate(wave):
-                success[key] = best[j]
-        rates = {g: float(np.mean([success[(g, i)] for i in range(len(self.seeds))])) for g in self.elements}
-        return rates, tags
+        ev = run_evaluation(
+            self.executors,
+            self.pairs,
+            contender.choose,
+            {},
+            contender.weights_map(),
+            self.seed,
+            self.episodes,
+            modes=("greedy",),
+            selections=("agnostic",),
+        )
+        per = {row["g"]: row["results"].get("greedy/agnostic") for row in ev["pairs"]}
+        missing = [g for g, res in per.items() if res is None]
+        if missing:
+            raise RuntimeError(f"no policy could act on transform(s) {missing}")
+        return {
+            "success": {g: float(res["success"]) for g, res in per.items()},
+            "ci95": {g: res["ci95"] for g, res in per.items()},
+            "policy": {g: res["policy_id"] for g, res in per.items()},
+            "episodes_per_transform": self.episodes,
+            "distinct_initial_states": int(ev["distinct_initial_states"]),
+        }
 
     def close(self) -> None:
-        for env in [*self._pool.values(), *self._fixed.values()]:
-            env.close()
-        self._pool.clear()
-        self._fixed.clear()
+        self.executors.close()
 
 
-def _stack(obs: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    return {"image": np.stack([o["image"] for o in obs]), "proprio": np.stack([o["proprio"] for o in obs])}
-
-
-def covers_actor(model: Any) -> ActFn:
-    """The greedy policy of a covers-dist actor-critic: its mean action (the env clips, as in training)."""
-
-    def act(obs: Mapping[str, np.ndarray]) -> np.ndarray:
-        return model.act(obs, deterministic=True)[0]
-
-    return act
-
-
-def rllib_actor(module: Any, action_space: Any, normalize_actions: bool = True) -> ActFn:
-    """The greedy policy of an RLlib RLModule on the image alone: the mean of its diagonal Gaussian
+def rllib_actor(module: Any, action_space: Any, normalize_actions: bool = True, image_only: bool = True) -> ActFn:
+    """The greedy policy of an RLlib RLModule: the mean of its diagonal Gaussian
     (``action_dist_inputs`` = ``[mean, log_std]``), unsquashed (``normalize_actions``) and clipped to
-    ``action_space`` as RLlib's module-to-env connector does."""
+    ``action_space`` as RLlib's module-to-env connector does. ``image_only``: the module takes the
+    image as floats in [0, 1] (RLlib's default CNN); else the task's dict (image + proprio)."""
     import torch
     from ray.rllib.core.columns import Columns
     from ray.rllib.utils.spaces.space_utils import unsquash_action
@@ -252,9 +239,13 @@ def rllib_actor(module: Any, action_space: Any, normalize_actions: bool = True) 
     dim = int(np.prod(action_space.shape))
 
     def act(obs: Mapping[str, np.ndarray]) -> np.ndarray:
-        image = torch.from_numpy(np.asarray(obs["image"], dtype=np.float32) * (1.0 / 255.0))
+        if image_only:
+            inputs: Any = torch.from_numpy(np.asarray(obs["image"], dtype=np.float32) * (1.0 / 255.0))
+        else:
+            inputs = {"image": torch.from_numpy(np.asarray(obs["image"])),
+                      "proprio": torch.from_numpy(np.asarray(obs["proprio"], dtype=np.float32))}  # fmt: skip
         with torch.no_grad():
-            out = module.forward_inference({Columns.OBS: image})
+            out = module.forward_inference({Columns.OBS: inputs})
         mean = out[Columns.ACTION_DIST_INPUTS][:, :dim].cpu().numpy().astype(np.float32)
         if normalize_actions:
             return np.stack([unsquash_action(a, action_space) for a in mean]).astype(np.float32)
@@ -263,17 +254,20 @@ def rllib_actor(module: Any, action_space: Any, normalize_actions: bool = True) 
     return act
 
 
+def _only_policy(obs: Mapping[str, np.ndarray], group_ids: Sequence[int]) -> dict[str, Any]:
+    """A peer has one policy: it acts on every transform."""
+    return {"policy_id": 0, "decision": "only", "nearest_distance": None}
+
+
 # ---- contenders ------------------------------------------------------------------------------
 class _CoversContender:
     """covers-dist's loop (:class:`~covers_dist.runtime.driver.Trainer`) on the serial or Ray backend."""
 
     def __init__(self, cfg: Any, keep: bool = False) -> None:
-        from ..envs import suite_layout
         from ..runtime.driver import Trainer
         from ..runtime.metrics import MetricsWriter
 
         self.cfg = cfg
-        self.layout = suite_layout(cfg.env.suite, cfg.env.image_size)
         self.trainer = Trainer(cfg, log=lambda *_: None)
         # a kept run logs as `covers-dist train` does (metrics.jsonl, episodes.jsonl; a checkpoint at the end)
         self.writer = MetricsWriter(self.trainer.run_dir, tensorboard=False) if keep else None
@@ -281,7 +275,6 @@ class _CoversContender:
         backend = self.trainer.backend
         if getattr(backend, "name", "") == "ray":  # wait until the rollout actors are up: start-up, not training
             backend.ray.get([w.stats.remote() for w in backend.workers])
-        self._models: dict[int, tuple[int, Any, ActFn]] = {}  # policy id -> (loaded version, model, actor)
         self._weights: dict[int, tuple[int, Any]] = {}  # what the evaluation acts with (before_eval)
 
     @property
@@ -298,42 +291,40 @@ class _CoversContender:
         # it would without this evaluation (the run does not depend on --eval-every)
         self._weights = self.trainer.newest_weights()
 
-    def _actor(self, pid: int) -> ActFn:
-        from ..models import build_actor_critic
-        from ..runtime.ray_setup import resolve_weights
+    def weights_map(self) -> dict[int, tuple[int, Any]]:
+        return dict(self._weights)
 
-        version, handle = self._weights[pid]
-        loaded = self._models.get(pid)
-        if loaded is None or loaded[0] != version:
-            model = loaded[1] if loaded is not None else build_actor_critic(self.cfg.network, self.layout, seed=0)
-            model.set_weights(resolve_weights(handle))
-            model.eval()
-            self._models[pid] = (version, model, covers_actor(model))
-        return self._models[pid][2]
-
-    def policy_for(self, first_frames: Mapping[str, np.ndarray]) -> int:
-        """The policy the bank would pick for these first frames (the only one when it holds one)."""
+    def choose(self, first_frames: Mapping[str, np.ndarray], group_ids: Sequence[int]) -> dict[str, Any]:
+        """The policy the bank would pick for these first frames (the only one when it holds one;
+        the nearest existing one when the rule would create a policy)."""
         policies = sorted(self._weights)
         if len(policies) == 1:
-            return policies[0]
+            return {"policy_id": policies[0], "decision": "only", "nearest_distance": None}
         n = len(first_frames["image"])
         record = self.trainer.backend.call_clustering("what_if", dict(first_frames), [0] * n, policies)
         pid = int(record["policy_id"])
-        if pid in self._weights:
-            return pid
-        dists = {int(k): float(v) for k, v in (record.get("distances") or {}).items() if v is not None}
-        dists = {k: v for k, v in dists.items() if k in self._weights}
-        return min(dists, key=lambda k: dists[k]) if dists else int(self.trainer.current_policy)
-
-    def chooser(self) -> Chooser:
-        def choose(g: str, first: Mapping[str, np.ndarray]) -> tuple[ActFn, Any]:
-            pid = self.policy_for(first)
-            return self._actor(pid), pid
-
-        return choose
+        if pid not in self._weights:
+            dists = {int(k): float(v) for k, v in (record.get("distances") or {}).items() if v is not None}
+            dists = {k: v for k, v in dists.items() if k in self._weights}
+            pid = min(dists, key=lambda k: dists[k]) if dists else int(self.trainer.current_policy)
+        return {"policy_id": pid, "decision": record.get("decision"), "nearest_distance": record.get("nearest_distance")}
 
     def extra(self) -> dict[str, Any]:
         return {"num_policies": len(self.trainer.versions)}
+
+    def hyperparameters(self) -> dict[str, Any]:
+        from .rllib_peer import ppo_settings
+
+        cfg = self.cfg
+        return {
+            "framework": "covers-dist",
+            "network": f"covers-dist {cfg.network.kind}, channels {list(cfg.network.channels)}, hidden {cfg.network.hidden}",
+            "observation": "image + proprio",
+            **ppo_settings(cfg),
+            "normalize_advantages": "per minibatch" if cfg.ppo.norm_adv else False,
+            "rollout_workers": cfg.runtime.num_workers,
+            "envs_per_worker": cfg.runtime.envs_per_worker,
+        }
 
     def close(self) -> None:
         try:
@@ -345,12 +336,16 @@ class _CoversContender:
 
 
 class _RLlibContender:
-    """RLlib's PPO (new API stack, default CNN on the image) on the group's transforms."""
+    """RLlib's PPO (new API stack) on the group's transforms, with the network ``PEERS[name]`` names."""
 
-    def __init__(self, cfg: Any, elements: Sequence[str]) -> None:
-        from .rllib_peer import build_rllib_ppo
+    def __init__(self, name: str, cfg: Any, elements: Sequence[str]) -> None:
+        from .rllib_peer import build_rllib_ppo, rllib_hyperparameters
 
-        self.algo = build_rllib_ppo(cfg, "default", transforms=list(elements))
+        peer = PEERS[name]
+        self.network = peer["network"]
+        self.cfg = cfg
+        self.algo = build_rllib_ppo(cfg, self.network, transforms=list(elements))
+        self._hp = rllib_hyperparameters(self.algo, self.network, cfg)
         self.steps = 0
         self.iterations = 0
 
@@ -368,56 +363,113 @@ class _RLlibContender:
     def before_eval(self) -> None:
         """Nothing in flight: ``train()`` returns once the weights are synced to the env runners."""
 
-    def chooser(self) -> Chooser:
+    def weights_map(self) -> dict[int, tuple[int, Any]]:
+        from ..evaluation.episodes import GreedyPolicy
+
         module = self.algo.get_module()  # the local env runner's copy, synced by every train()
         module.eval()
-        act = rllib_actor(module, module.action_space, bool(self.algo.config.normalize_actions))
-        return lambda g, first: (act, None)
+        act = rllib_actor(module, module.action_space, bool(self.algo.config.normalize_actions),
+                          image_only=self.network == "default")  # fmt: skip
+        return {0: (self.iterations, GreedyPolicy(act, "rllib"))}
+
+    choose = staticmethod(_only_policy)
 
     def extra(self) -> dict[str, Any]:
         return {"iterations": self.iterations}
 
+    def hyperparameters(self) -> dict[str, Any]:
+        return dict(self._hp)
+
     def close(self) -> None:
         self.algo.stop()
+
+
+class _SB3Contender:
+    """Stable-Baselines3's PPO (``MultiInputPolicy`` on image + proprio) on the group's transforms."""
+
+    def __init__(self, cfg: Any, elements: Sequence[str]) -> None:
+        from .sb3_peer import build_sb3_ppo, sb3_hyperparameters
+
+        self.model = build_sb3_ppo(cfg, list(elements))
+        self._hp = sb3_hyperparameters(self.model, cfg)
+        self._batch = int(self.model.n_steps * self.model.n_envs)
+        self.iterations = 0
+
+    @property
+    def env_steps(self) -> int:
+        return int(self.model.num_timesteps)
+
+    def train_once(self) -> None:
+        # one rollout of n_steps per env and one update, the batch of one covers-dist iteration
+        self.model.learn(total_timesteps=self._batch, reset_num_timesteps=False)
+        self.iterations += 1
+
+    def before_eval(self) -> None:
+        """Nothing in flight: ``learn()`` returns after its update."""
+
+    def weights_map(self) -> dict[int, tuple[int, Any]]:
+        from ..evaluation.episodes import GreedyPolicy
+        from .sb3_peer import sb3_greedy
+
+        return {0: (self.iterations, GreedyPolicy(sb3_greedy(self.model), "sb3"))}
+
+    choose = staticmethod(_only_policy)
+
+    def extra(self) -> dict[str, Any]:
+        return {"iterations": self.iterations}
+
+    def hyperparameters(self) -> dict[str, Any]:
+        return dict(self._hp)
+
+    def close(self) -> None:
+        self.model.get_env().close()
 
 
 # ---- one race --------------------------------------------------------------------------------
 def race(
     name: str,
     contender: Any,
-    evaluator: GreedyEvaluator,
+    evaluator: GroupEvaluation,
     threshold: float,
     eval_every: int,
     budget_steps: int,
     budget_s: float,
     log: Callable[[str], None] = _log,
+    held: int = HELD_EVALUATIONS,
 ) -> dict[str, Any]:
-    """Train ``contender`` until its greedy policy reaches ``threshold`` on every element or its
-    budget ends, evaluating (clock paused) at 0 env steps and every ``eval_every`` env steps."""
+    """Train ``contender`` until its greedy policy meets ``threshold`` on every element at ``held``
+    consecutive evaluations, or its budget ends; evaluates (clock paused) at 0 env steps and every
+    ``eval_every`` env steps, and once more at the end when the last point is older."""
     curve: list[dict[str, Any]] = []
     train_s, eval_s, next_eval = 0.0, 0.0, 0
+    streak = 0  # consecutive evaluations at or above the threshold
     reached: dict[str, Any] | None = None
 
     def evaluate() -> dict[str, Any]:
-        nonlocal train_s, eval_s
+        nonlocal train_s, eval_s, streak
         t0 = time.perf_counter()
         contender.before_eval()
         train_s += time.perf_counter() - t0
         t1 = time.perf_counter()
-        success, tags = evaluator.evaluate(contender.chooser())
+        out = evaluator.evaluate(contender)
         spent = time.perf_counter() - t1
         eval_s += spent
-        values = list(success.values())
+        values = list(out["success"].values())
         point = {
             "env_steps": contender.env_steps,
             "train_wall_s": round(train_s, 3),
             "eval_s": round(spent, 3),
             "min_success": float(min(values)),
             "mean_success": float(np.mean(values)),
-            "success": success,
-            **({"policy": tags} if any(t is not None for t in tags.values()) else {}),
+            "success": out["success"],
+            "ci95": out["ci95"],
+            "episodes_per_transform": out["episodes_per_transform"],
+            "distinct_initial_states": out["distinct_initial_states"],
+            "policy": out["policy"],
             **contender.extra(),
         }
+        streak = streak + 1 if point["min_success"] >= threshold else 0
+        point["held"] = streak
         curve.append(point)
         steps = point["env_steps"]
         rate = steps / train_s if train_s > 0 else 0.0
@@ -429,7 +481,9 @@ def race(
             eta_txt = "budget spent" if left <= 0 else "ETA n/a"
         log(
             f"learn {name}: {steps} env steps, {train_s:.1f} s training ({rate:.0f} steps/s), success min "
-            f"{point['min_success']:.2f} mean {point['mean_success']:.2f} (eval {spent:.1f} s); {eta_txt}"
+            f"{point['min_success']:.2f} mean {point['mean_success']:.2f} on {point['distinct_initial_states']} "
+            f"initial states ({point['episodes_per_transform']} per transform; eval {spent:.1f} s), "
+            f"{streak} in a row >= {threshold}; {eta_txt}"
         )
         return point
 
@@ -438,7 +492,7 @@ def race(
         if contender.env_steps >= next_eval:
             point = evaluate()
             next_eval = (contender.env_steps // eval_every + 1) * eval_every
-            if point["min_success"] >= threshold:
+            if streak >= held:
                 reached, stopped = point, "threshold"
                 break
         out_of = "steps" if contender.env_steps >= budget_steps else ("minutes" if train_s >= budget_s else None)
@@ -446,23 +500,28 @@ def race(
             stopped = out_of
             if curve[-1]["env_steps"] != contender.env_steps:  # the newest policy gets its evaluation too
                 point = evaluate()
-                if point["min_success"] >= threshold:
+                if streak >= held:
                     reached, stopped = point, "threshold"
             break
         t0 = time.perf_counter()
         contender.train_once()
         train_s += time.perf_counter() - t0
     final_steps = contender.env_steps
+    first_met = curve[-held] if reached is not None else None
     if reached is not None:
-        log(f"learn {name}: success >= {threshold} on every transform after {reached['env_steps']} env steps, "
+        log(f"learn {name}: solved: success >= {threshold} on every transform at {held} evaluations in a row, "
+            f"first at {first_met['env_steps']} env steps, held at {reached['env_steps']} env steps, "
             f"{reached['train_wall_s']:.1f} s of training")  # fmt: skip
     else:
         log(f"learn {name}: {stopped} budget spent at {final_steps} env steps, {train_s:.1f} s of training; "
             f"best min success {max(p['min_success'] for p in curve):.2f}")  # fmt: skip
     return {
         "reached": reached is not None,
+        "solved_rule": f"min success over transforms >= threshold at {held} consecutive evaluations",
+        # the run is known solved at the evaluation that completes the streak: its steps and time count
         "env_steps_to_threshold": reached["env_steps"] if reached else None,
         "wall_s_to_threshold": reached["train_wall_s"] if reached else None,
+        "first_met_env_steps": first_met["env_steps"] if first_met else None,
         "best_min_success": max(p["min_success"] for p in curve),
         "best_mean_success": max(p["mean_success"] for p in curve),
         "stopped": stopped,
@@ -484,25 +543,33 @@ def _duration(seconds: float) -> str:
 
 
 def _run_contender(
-    name: str, cfg: Any, elements: list[str], evaluator: GreedyEvaluator, args: argparse.Namespace, keep: bool = False
-) -> dict[str, Any]:
+    name: str, cfg: Any, elements: list[str], evaluator: GroupEvaluation, budget: tuple[int, float],
+    args: argparse.Namespace, keep: bool = False,
+) -> dict[str, Any]:  # fmt: skip
     """Build one contender (Ray started for it and shut down after), race it, tear it down."""
     from ..runtime.ray_setup import init_ray, shutdown_ray
 
-    use_ray = name == "rllib" or not cfg.runtime.serial
+    framework = PEERS.get(name, {}).get("framework", "covers")
+    use_ray = framework == "rllib" or (framework == "covers" and not cfg.runtime.serial)
     t0 = time.perf_counter()
     if use_ray:
         init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address)
     contender: Any = None
     try:
-        contender = _RLlibContender(cfg, elements) if name == "rllib" else _CoversContender(cfg, keep)
+        if framework == "rllib":
+            contender = _RLlibContender(name, cfg, elements)
+        elif framework == "sb3":
+            contender = _SB3Contender(cfg, elements)
+        else:
+            contender = _CoversContender(cfg, keep)
         setup_s = time.perf_counter() - t0
         _log(f"learn {name}: ready after {setup_s:.1f} s of start-up")
-        result = race(
-            name, contender, evaluator, args.threshold, args.eval_every, args.budget_steps, args.budget_minutes * 60.0
-        )
+        steps, minutes = budget
+        result = race(name, contender, evaluator, args.threshold, args.eval_every, steps, minutes * 60.0)
         result["setup_s"] = round(setup_s, 3)
-        result["backend"] = "rllib" if name == "rllib" else ("serial" if cfg.runtime.serial else "ray")
+        result["backend"] = framework if framework != "covers" else ("serial" if cfg.runtime.serial else "ray")
+        result["budget"] = {"env_steps": int(steps), "minutes": float(minutes)}
+        result["hyperparameters"] = contender.hyperparameters()
         return result
     finally:
         if contender is not None:
@@ -511,10 +578,21 @@ def _run_contender(
             shutdown_ray()
 
 
+def peer_budget(args: argparse.Namespace, covers: Mapping[str, Any] | None) -> tuple[int, float]:
+    """A peer's (env steps, training minutes): the given budget, raised to ``--peer-budget-factor``
+    times what covers needed when covers ran before it here and was solved."""
+    steps, minutes = int(args.budget_steps), float(args.budget_minutes)
+    if covers and covers.get("reached"):
+        factor = float(getattr(args, "peer_budget_factor", 4.0))
+        steps = max(steps, int(math.ceil(factor * covers["env_steps_to_threshold"])))
+        minutes = max(minutes, factor * covers["wall_s_to_threshold"] / 60.0)
+    return steps, minutes
+
+
 # ---- results ---------------------------------------------------------------------------------
 def ratios(contenders: Mapping[str, Mapping[str, Any]]) -> dict[str, float | None]:
-    """covers / rllib and covers / cnn, in training seconds and env steps to the threshold (below 1:
-    covers got there sooner); None where either did not reach it (or did not run)."""
+    """covers / each other contender, in training seconds and env steps to the solved point (below 1:
+    covers got there sooner); None where either was not solved (or did not run)."""
 
     def ratio(a: str, b: str, key: str) -> float | None:
         x, y = contenders.get(a, {}), contenders.get(b, {})
@@ -525,12 +603,14 @@ def ratios(contenders: Mapping[str, Mapping[str, Any]]) -> dict[str, float | Non
             return None
         return round(float(top) / float(bottom), 3)
 
-    return {
-        "covers_wall_vs_rllib": ratio("covers", "rllib", "wall_s_to_threshold"),
-        "covers_steps_vs_rllib": ratio("covers", "rllib", "env_steps_to_threshold"),
-        "covers_wall_vs_cnn": ratio("covers", "cnn", "wall_s_to_threshold"),
-        "covers_steps_vs_cnn": ratio("covers", "cnn", "env_steps_to_threshold"),
-    }
+    out: dict[str, float | None] = {}
+    for other in contenders:
+        if other == "covers":
+            continue
+        key = other.replace("-", "_")
+        out[f"covers_wall_vs_{key}"] = ratio("covers", other, "wall_s_to_threshold")
+        out[f"covers_steps_vs_{key}"] = ratio("covers", other, "env_steps_to_threshold")
+    return out
 
 
 def plot_curves(result: Mapping[str, Any], path: str | Path) -> Path:
@@ -574,7 +654,8 @@ def _summary(result: Mapping[str, Any]) -> str:
             lines.append(f"  {name}: failed: {res['error']}")
             continue
         if res["reached"]:
-            what = f"reached after {res['env_steps_to_threshold']} env steps, {res['wall_s_to_threshold']:.1f} s"
+            what = (f"solved (held at {HELD_EVALUATIONS} evaluations in a row) at {res['env_steps_to_threshold']} env "
+                    f"steps, {res['wall_s_to_threshold']:.1f} s")  # fmt: skip
         else:
             what = f"not reached ({res['stopped']} budget spent): best min success {res['best_min_success']:.2f}"
         lines.append(f"  {name}: {what} ({res['env_steps']} env steps, {res['train_wall_s']:.1f} s of training)")
@@ -705,18 +786,23 @@ def run(args: argparse.Namespace) -> int:
     # that), no held-out pairs
     overrides = ["env.episodes_per_task=1", *user, f"env.tasks=[{task}]", "env.held_out=0", "eval.tasks=null"]
     cfg0 = load_config(args.config, overrides)
-    kept = {n: str(Path(args.out) / "runs" / n) for n in chosen if getattr(args, "keep_runs", False) and n != "rllib"}
+    kept = {n: str(Path(args.out) / "runs" / n) for n in chosen if getattr(args, "keep_runs", False) and n not in PEERS}
     for run_dir in kept.values():
         if Path(run_dir).is_dir() and any(Path(run_dir).iterdir()):
             _fail(f"--keep-runs: {run_dir} already holds a run; choose another --out or remove it")
-    evaluator = GreedyEvaluator(cfg0.env, task, elements, args.eval_episodes, cfg0.seed)
+    evaluator = GroupEvaluation(cfg0, task, elements, args.eval_episodes, cfg0.seed)
     result: dict[str, Any] = {
         "task": task,
         "group": cfg0.env.group,
         "transforms": elements,
         "threshold": args.threshold,
         "budget": {"env_steps": args.budget_steps, "minutes": args.budget_minutes},
-        "eval": {"every_env_steps": args.eval_every, "episodes_per_transform": args.eval_episodes},
+        "eval": {
+            "every_env_steps": args.eval_every,
+            "episodes_per_transform": args.eval_episodes,
+            "initial_states": "distinct per (transform, episode)",
+            "solved": f"threshold met at {HELD_EVALUATIONS} consecutive evaluations",
+        },
         "config": args.config,
         "overrides": list(args.overrides),
         "seed": cfg0.seed,
@@ -732,9 +818,12 @@ def run(args: argparse.Namespace) -> int:
             keep = name in kept
             run_dir = kept[name] if keep else tempfile.mkdtemp(prefix=f"covers-learn-{name}-")
             extra = [f"runtime.run_dir={run_dir}", f"runtime.serial={str(serial).lower()}"]
+            budget = (args.budget_steps, args.budget_minutes)
+            if name in PEERS:
+                budget = peer_budget(args, result["contenders"].get("covers"))
             try:
                 cfg = load_config(args.config, [*overrides, *CONTENDER_OVERRIDES.get(name, []), *extra])
-                result["contenders"][name] = _run_contender(name, cfg, elements, evaluator, args, keep)
+                result["contenders"][name] = _run_contender(name, cfg, elements, evaluator, budget, args, keep)
             except KeyboardInterrupt:
                 raise
             except Exception as e:  # noqa: BLE001 - reported; the other contenders still run

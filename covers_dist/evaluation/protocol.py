@@ -11,11 +11,15 @@ runs ``episodes`` episodes per selection and mode:
   episodes of that group), as COVERS-GT would;
 * mode ``greedy`` (the policy's mean action) and ``stochastic`` (sampled actions).
 
-Evaluation episodes have their own seeds, a pure function of the run seed, the pair and the
-episode number (not of g: every element of a group runs the same, exactly equivalent instances),
-tagged so that they never coincide with a training episode's seed (``SeedSequence([seed,
-episode_index])`` in the rollout workers); every pass uses the same seeds, so successive passes
-and the elements of one pass compare like with like. Plain Python: no Ray, no torch.
+Evaluation episodes have their own seeds, a pure function of the run seed, the pair's group, the
+pair's element and the episode number, tagged so that they never coincide with a training
+episode's seed (``SeedSequence([seed, episode_index])`` in the rollout workers). So every
+(group, g, episode) starts from its own initial state: a group's success over its |G| elements
+rests on |G| x ``episodes`` distinct states, and the rows count them
+(``distinct_initial_states``, from a fingerprint of each episode's initial state mapped back to
+the base task, :func:`covers_dist.evaluation.episodes.initial_state_key`). Every pass uses the
+same seeds, so successive passes compare like with like. Every success figure carries its ``n``
+and a Wilson 95% interval (:mod:`covers_dist.evaluation.stats`). Plain Python: no Ray, no torch.
 """
 
 from __future__ import annotations
@@ -25,6 +29,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from .stats import success_summary
+
 __all__ = [
     "EVAL_SEED_TAG",
     "SELECTIONS",
@@ -33,6 +39,7 @@ __all__ = [
     "EvalPair",
     "EvalJob",
     "eval_seed",
+    "pair_seeds",
     "eval_pairs",
     "oracle_policies",
     "plan_jobs",
@@ -75,15 +82,20 @@ class EvalJob:
         return {**asdict(self), "pair": asdict(self.pair)}
 
 
-def eval_seed(run_seed: int, group_id: int, episode: int) -> int:
-    """The reset seed of evaluation episode ``episode`` of every pair of group ``group_id``.
+def eval_seed(run_seed: int, group_id: int, element_index: int, episode: int) -> int:
+    """The reset seed of evaluation episode ``episode`` of the pair (group ``group_id``, element
+    number ``element_index``): a different initial state for every (group, g, episode).
 
-    The same for every element g: ``g.T`` reset with it is the exactly equivalent instance of
-    ``T``, so an exactly equivariant policy scores the same on every g, and any difference
-    between transforms is the policy's (or the bank's choice's), not the sample's.
+    (The test that an equivariant policy scores the same on ``g.T`` as on ``T`` resets both with
+    one seed on purpose: tests/test_evaluation.py.)
     """
-    seq = np.random.SeedSequence([int(run_seed), EVAL_SEED_TAG, int(group_id), int(episode)])
+    seq = np.random.SeedSequence([int(run_seed), EVAL_SEED_TAG, int(group_id), int(element_index), int(episode)])
     return int(seq.generate_state(1)[0])
+
+
+def pair_seeds(run_seed: int, pair: "EvalPair", episodes: int) -> list[int]:
+    """The reset seeds of ``pair``'s ``episodes`` evaluation episodes."""
+    return [eval_seed(run_seed, pair.group_id, pair.element_index, i) for i in range(int(episodes))]
 
 
 def eval_pairs(stream: Any, episodes_done: int, tasks: Sequence[str] | None = None) -> list[EvalPair]:
@@ -142,7 +154,7 @@ def plan_jobs(
             pid = agnostic.get(pair.key) if sel == "agnostic" else oracle.get(pair.group_id)
             if pid is not None:
                 chosen.setdefault(int(pid), []).append(sel)
-        seeds = [eval_seed(run_seed, pair.group_id, i) for i in range(episodes)]
+        seeds = pair_seeds(run_seed, pair, episodes)
         for pid, sels in sorted(chosen.items()):
             for mode in modes:
                 jobs.append(EvalJob(pair, pid, mode, seeds, sels))
@@ -156,13 +168,15 @@ def pair_rows(
     choices: dict[str, dict[str, Any]],
     oracle: dict[int, int],
 ) -> list[dict[str, Any]]:
-    """Per pair: status, chosen policies and, per ``mode/selection``, success and return means."""
+    """Per pair: status, chosen policies and, per ``mode/selection``, success (with ``n``, ``successes``,
+    ``ci95`` and ``distinct_initial_states``) and mean return."""
     results: dict[str, dict[str, dict[str, Any]]] = {p.key: {} for p in pairs}
     for job, out in zip(jobs, outcomes):
+        summary = success_summary(out["success"], out.get("state_key"))
         for sel in job.selections:
             results[job.pair.key][f"{job.mode}/{sel}"] = {
                 "policy_id": job.policy_id,
-                "success": float(np.mean(out["success"])),
+                **summary,
                 "return": float(np.mean(out["return"])),
                 "episodes": len(out["success"]),
             }

@@ -23,7 +23,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .protocol import MODES, SELECTIONS, EvalPair, eval_seed, pair_rows, plan_jobs
+from .protocol import MODES, SELECTIONS, EvalPair, pair_rows, pair_seeds, plan_jobs
 
 __all__ = ["LocalExecutors", "run_evaluation", "EVAL_LOG", "append_pass", "read_passes", "split_evenly"]
 
@@ -99,7 +99,7 @@ def run_evaluation(
         raise ValueError("no (task, g) pairs to evaluate")
     t0 = time.perf_counter()
     times: dict[str, float] = {}
-    seeds = {p.key: [eval_seed(run_seed, p.group_id, i) for i in range(episodes)] for p in pairs}
+    seeds = {p.key: pair_seeds(run_seed, p, episodes) for p in pairs}
     frames = _gather(executors, "eval_first_frames", [(p, seeds[p.key]) for p in pairs])
     times["frames"] = time.perf_counter() - t0
     t1 = time.perf_counter()
@@ -134,6 +134,8 @@ def run_evaluation(
         "pairs": pair_rows(pairs, jobs, outcomes, choices, oracle),
         "time_s": times,
         "eval_episodes": int(sum(len(o["success"]) for o in outcomes)),
+        # different reset states behind the pass (the same state met by two modes or policies counts once)
+        "distinct_initial_states": len({k for o in outcomes for k in o.get("state_key", []) if k is not None}),
     }
 
 

@@ -17,6 +17,7 @@ import torch
 
 from ..config import Config
 from ..envs import make_task, suite_layout
+from ..evaluation.episodes import run_eval_episodes
 from ..evaluation.protocol import EvalJob, EvalPair
 from ..models import build_actor_critic
 from ..ppo.rollout import run_lockstep
@@ -166,19 +167,36 @@ class RolloutWorker:
         """First observations of each (pair, seeds): what the bank chooses a policy from."""
         return [self.first_observations(_eval_specs(pair, len(seeds)), seeds) for pair, seeds in items]
 
-    def eval_jobs(self, jobs: list[EvalJob], weights_map: dict[int, tuple[int, Any]]) -> list[dict[str, list[float]]]:
-        """Run every job's episodes; per job ``{"success": [...], "return": [...]}`` (no frames)."""
+    def eval_jobs(self, jobs: list[EvalJob], weights_map: dict[int, tuple[int, Any]]) -> list[dict[str, list[Any]]]:
+        """Run every job's episodes with :func:`~covers_dist.evaluation.episodes.run_eval_episodes`;
+        per job ``{"success": [...], "return": [...], "state_key": [...]}`` (no frames).
+
+        ``weights_map`` is ``{policy id: (version, weights)}``; in this process a value may also be
+        ``(version, policy)`` with a policy object (anything with ``act``, e.g.
+        :class:`~covers_dist.evaluation.episodes.GreedyPolicy` around another framework's module),
+        which then acts instead of this worker's network.
+        """
         out = []
+        width = self.cfg.runtime.envs_per_worker
         for job in jobs:
             version, handle = weights_map[job.policy_id]
-            specs = _eval_specs(job.pair, len(job.seeds))
-            episodes = self.sample(specs, job.policy_id, version, handle, job.mode == "greedy", job.seeds)
-            out.append(
-                {
-                    "success": [float(np.max(ep["success"])) if len(ep["success"]) else 0.0 for ep in episodes],
-                    "return": [float(ep["reward"].sum()) for ep in episodes],
-                }
-            )
+            if hasattr(handle, "act"):
+                policy = handle
+            else:
+                self._ensure_weights(job.policy_id, version, handle)
+                policy = self.model
+            deterministic = job.mode == "greedy"
+            result: dict[str, list[Any]] = {"success": [], "return": [], "state_key": []}
+            for start in range(0, len(job.seeds), width):
+                seeds = [int(x) for x in job.seeds[start : start + width]]
+                envs = [self._env(job.pair.task, job.pair.g, slot) for slot in range(len(seeds))]
+                gen = torch.Generator().manual_seed(seeds[0] % (2**63))
+                for ep in run_eval_episodes(policy, envs, seeds, deterministic, gen, self.layout):
+                    self.env_steps += ep["length"]
+                    result["success"].append(ep["success"])
+                    result["return"].append(ep["return"])
+                    result["state_key"].append(ep.get("state_key"))
+            out.append(result)
         return out
 
     def probe(self) -> np.ndarray:
