@@ -1,8 +1,9 @@
 """``covers-dist eval RUN_DIR``: evaluate a saved run's policy bank on every (task, g).
 
 Loads the newest valid checkpoint read-only, and for every base task x every element of the
-run's group (seen, unseen and held-out pairs marked) runs ``--episodes`` seeded evaluation
-episodes per chosen policy and mode: the policy picked task-agnostically by the bank's own
+run's group (seen, unseen and held-out pairs marked) runs ``--episodes`` (default 8) evaluation
+episodes per chosen policy and mode, each from its own initial state (a distinct seed per
+(group, g, episode)): the policy picked task-agnostically by the bank's own
 assignment rule on the episodes' first frames (a what-if: the bank does not change) and the
 oracle policy (the one that trained on the pair's group); greedy and stochastic actions. The pass
 is appended to ``RUN_DIR/eval.jsonl`` (never to the checkpoints); the per-pair table and the
@@ -19,6 +20,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+#: Episodes per (task, g), policy and mode when ``--episodes`` is not given.
+DEFAULT_EPISODES = 8
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -28,7 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory written by covers-dist train")
-    p.add_argument("--episodes", type=int, help="episodes per pair, policy and mode (default: the run's eval.episodes)")
+    p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES,
+                   help=f"episodes per pair, policy and mode, each from its own initial state (default: {DEFAULT_EPISODES})")  # fmt: skip
     p.add_argument("--tasks", help="comma-separated base tasks to evaluate (default: every task of the run)")
     p.add_argument("--modes", help="comma-separated: greedy,stochastic (default: the run's eval.modes)")
     p.add_argument("--selections", help="comma-separated: agnostic,oracle (default: the run's eval.selections)")
@@ -120,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"pass": ev, "metrics": cl}, default=float))
         return 0
     print(f"# {saved.run_dir} at iteration {ev['iteration']} ({ev['env_steps']} env steps, {saved.checkpoint.name})")
-    print(f"{ev['eval_episodes']} evaluation episodes in {ev['time_s']['total']:.1f} s\n")
+    print(f"{ev['eval_episodes']} evaluation episodes from {ev['distinct_initial_states']} distinct initial states "
+          f"in {ev['time_s']['total']:.1f} s\n")  # fmt: skip
     print(pairs_table(ev))
     print()
     print(_summary(cl))
@@ -133,12 +139,13 @@ def _summary(cl: dict[str, Any]) -> str:
     from ..evaluation.report import markdown_table
 
     rows = [
-        [t, g["success"], g["success_seen"], g["success_held_out"], g["success_oracle"], g["success_stochastic"],
-         g["return"], cl["forgetting"].get(t)]
+        [t, g["success"], _interval(g.get("success_counts")), g["success_seen"], g["success_held_out"],
+         g["success_oracle"], g["success_stochastic"], g["return"], cl["forgetting"].get(t)]
         for t, g in cl["groups"].items()
     ]  # fmt: skip
     table = markdown_table(
-        ["group", "success", "seen", "held-out", "oracle", "stochastic", "return", "forgetting"], rows
+        ["group", "success", "95% interval (n)", "seen", "held-out", "oracle", "stochastic", "return", "forgetting"],
+        rows,
     )
     avg = cl.get("average_success")
     zs = cl.get("zero_shot_success")
@@ -149,6 +156,13 @@ def _summary(cl: dict[str, Any]) -> str:
         f"over {cl['passes']} pass(es)"
     )
     return table + "\n\n" + line
+
+
+def _interval(counts: dict[str, Any] | None) -> str:
+    if not counts:
+        return "n/a"
+    lo, hi = counts["ci95"]
+    return f"{lo:.2f}-{hi:.2f} ({counts['successes']}/{counts['n']})"
 
 
 def _episode_rows(run_dir: Path, episodes_done: int) -> list[dict[str, Any]]:

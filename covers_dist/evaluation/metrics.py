@@ -27,6 +27,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from .stats import wilson_interval
+
 __all__ = [
     "pair_success",
     "group_success",
@@ -63,6 +65,20 @@ def group_success(
     return _mean([pair_success(r, key, field) for r in ev["pairs"] if r["task"] == task and r["status"] in statuses])
 
 
+def group_counts(
+    ev: dict[str, Any], task: str, key: str = "greedy/agnostic", statuses: Sequence[str] = TRAINABLE
+) -> dict[str, Any] | None:
+    """``task``'s successes pooled over its pairs at pass ``ev``: ``{"successes", "n", "ci95"}``
+    (Wilson 95%); None when no pair ran or the pass predates the counts."""
+    results = [r["results"].get(key) for r in ev["pairs"] if r["task"] == task and r["status"] in statuses]
+    results = [res for res in results if res is not None]
+    if not results or not all("successes" in res and "n" in res for res in results):
+        return None
+    k, n = sum(int(res["successes"]) for res in results), sum(int(res["n"]) for res in results)
+    lo, hi = wilson_interval(k, n)
+    return {"successes": k, "n": n, "ci95": [round(lo, 4), round(hi, 4)]}
+
+
 def groups_seen(ev: dict[str, Any]) -> list[str]:
     """Tasks the stream had shown when pass ``ev`` ran."""
     return [t for t, info in ev.get("groups", {}).items() if info.get("first_episode") is not None]
@@ -80,6 +96,7 @@ def pass_summary(ev: dict[str, Any]) -> dict[str, Any]:
             "success_oracle": group_success(ev, t, key="greedy/oracle"),
             "success_stochastic": group_success(ev, t, key="stochastic/agnostic"),
             "return": group_success(ev, t, field="return"),
+            "success_counts": group_counts(ev, t),
         }
     seen = [t for t in groups_seen(ev) if t in per]
     held = [pair_success(r) for r in ev["pairs"] if r["status"] == "held_out"]

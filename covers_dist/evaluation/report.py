@@ -10,7 +10,6 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .metrics import pair_success
 
 __all__ = ["PAPER_SUCCESS", "PAPER_AVERAGE", "pairs_table", "results_table", "markdown_table"]
 
@@ -48,8 +47,17 @@ def pairs_table(ev: dict[str, Any]) -> str:
     for r in ev["pairs"]:
         choice = "n/a" if r.get("agnostic_policy") is None else f"{r['agnostic_policy']} ({r.get('agnostic_decision')})"
         oracle = "n/a" if r.get("oracle_policy") is None else str(r["oracle_policy"])
-        rows.append([r["task"], r["g"], r["status"], choice, oracle] + [pair_success(r, k) for k in keys])
+        rows.append([r["task"], r["g"], r["status"], choice, oracle] + [_with_n(r.get("results", {}).get(k)) for k in keys])
     return markdown_table(header, rows)
+
+
+def _with_n(res: dict[str, Any] | None) -> Any:
+    """A pair's success with the episodes behind it, ``0.62 (5/8)`` (older passes: the rate alone)."""
+    if res is None:
+        return None
+    if "successes" in res and "n" in res:
+        return f"{_f(res['success'])} ({res['successes']}/{res['n']})"
+    return res.get("success")
 
 
 def _policies_per_group(confusion: dict[str, Any]) -> dict[int, tuple[int, float | None]]:

@@ -152,7 +152,8 @@ class PeriodicEvaluation:
         self.passes.append(ev)
         cl = continual_metrics(self.passes)
         self.log(
-            f"evaluation at iteration {ev.get('iteration')} ({ev['eval_episodes']} episodes, "
+            f"evaluation at iteration {ev.get('iteration')} ({ev['eval_episodes']} episodes from "
+            f"{ev.get('distinct_initial_states', 'n/a')} initial states, "
             f"{ev['time_s']['total']:.0f} s): average success {_fmt(cl['average_success'])}, "
             f"zero-shot {_fmt(cl['zero_shot_success'])}, per group "
             + " ".join(f"{t}={_fmt(g['success'])}" for t, g in cl["groups"].items())
