@@ -16,7 +16,7 @@ def test_wilson_interval_matches_values_known_by_hand():
     lo, hi = wilson_interval(0, 10)
     assert lo == 0.0 and hi == pytest.approx(z2 / (10 + z2), abs=1e-12)
     lo, hi = wilson_interval(10, 10)
-    assert hi == 1.0 and lo == pytest.approx(10 / (10 + z2), abs=1e-12)
+    assert hi == pytest.approx(1.0, abs=1e-12) and lo == pytest.approx(10 / (10 + z2), abs=1e-12)
     assert wilson_interval(5, 10) == pytest.approx((0.236593, 0.763407), abs=1e-6)
     assert wilson_interval(64, 128) == pytest.approx((0.414652, 0.585348), abs=1e-6)
 
