@@ -16,6 +16,13 @@ whose approximate KL to the behaviour policy exceeds it (that minibatch is not a
 The learning rate follows ``lr_schedule``: constant, or linear from ``lr`` at update 0 to 0 at
 update ``total_updates`` (and 0 after). The learner owns the optimizer; :meth:`state_dict`
 covers the model weights, the optimizer, the update counters and the shuffling RNG.
+
+Episodes acted by another network (``update(..., reevaluate=...)``, the runtime's batch acted by
+another policy than the one it was assigned to) first have their ``logprob`` and ``value``
+recomputed by this learner's model (:meth:`PPOLearner.reevaluate`): GAE then uses this network's
+values, on its own return scale, and the ratio's old log-prob is this network's, so the first
+minibatch is on-policy. Other episodes are used as stored (docs/learning.md, "A batch acted by
+another policy").
 """
 
 from __future__ import annotations
@@ -40,7 +47,7 @@ STAT_KEYS = (
     "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "grad_norm",
     "skipped_steps", "optimizer_steps", "epochs_completed", "early_stopped", "lr", "num_samples",
     "num_episodes", "episode_return_mean", "success_rate", "update_time_s", "samples_per_s", "update_count", "bf16", "reward_divisor",
-    "bound_loss", "mean_out_of_box",
+    "bound_loss", "mean_out_of_box", "reevaluated_samples",
 )  # fmt: skip
 
 
@@ -206,10 +213,63 @@ class PPOLearner:
             return self.cfg.lr
         return self.cfg.lr * max(0.0, 1.0 - self.update_count / self.cfg.total_updates)
 
-    def update(self, episodes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-        """One PPO update on ``episodes``; returns the statistics listed in :data:`STAT_KEYS`."""
+    @torch.no_grad()
+    def reevaluate(self, episodes: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+        """Copies of ``episodes`` whose ``logprob`` (T,) and ``value`` (T + 1,) are this model's.
+
+        What a rollout worker holding these weights would have stored for the same observations and
+        actions: fp32 (no autocast), eval mode, in chunks of ``minibatch_size`` observations. The
+        episodes passed in are not modified (on Ray their arrays are read-only).
+        """
+        was_training = self.model.training
+        self.model.eval()
+        chunk = max(1, int(self.cfg.minibatch_size))
+        out = []
+        try:
+            for i, ep in enumerate(episodes):
+                t = _check_episode(i, ep)
+                image = np.ascontiguousarray(np.asarray(ep["image"]))
+                proprio = np.ascontiguousarray(np.asarray(ep["proprio"], np.float32))
+                actions = np.asarray(ep["action"], np.float32).reshape(t, -1)
+                # the last observation has no action; a zero action gives its value (its log-prob is dropped)
+                actions = np.concatenate([actions, np.zeros((1, actions.shape[1]), np.float32)])
+                logps, values = [], []
+                for s in range(0, t + 1, chunk):
+                    obs = {"image": torch.tensor(image[s : s + chunk]), "proprio": torch.tensor(proprio[s : s + chunk])}
+                    logp, _, value = self.model.evaluate_actions(obs, torch.tensor(actions[s : s + chunk]))
+                    logps.append(logp.float().cpu().numpy())
+                    values.append(value.float().cpu().numpy())
+                copied = dict(ep)
+                copied["logprob"] = np.concatenate(logps)[:t].astype(np.float32)
+                copied["value"] = np.concatenate(values).astype(np.float32)
+                out.append(copied)
+        finally:
+            self.model.train(was_training)
+        return out
+
+    def update(self, episodes: Sequence[Mapping[str, Any]], reevaluate: Sequence[bool] | None = None) -> dict[str, Any]:
+        """One PPO update on ``episodes``; returns the statistics listed in :data:`STAT_KEYS`.
+
+        ``reevaluate`` (one flag per episode): episodes acted by another network, whose stored
+        log-probs and values are replaced by this model's before GAE (:meth:`reevaluate`); their
+        steps are counted in ``reevaluated_samples``.
+        """
         cfg = self.cfg
         start = time.perf_counter()
+        reevaluated = 0
+        if reevaluate is not None:
+            flags = [bool(f) for f in reevaluate]
+            if len(flags) != len(episodes):
+                raise ValueError(
+                    f"reevaluate needs one flag per episode, got {len(flags)} for {len(episodes)} episodes"
+                )
+            if any(flags):
+                for i, ep in enumerate(episodes):  # errors name the episode's place in the whole batch
+                    _check_episode(i, ep)
+                picked = [ep for ep, f in zip(episodes, flags) if f]
+                fresh = iter(self.reevaluate(picked))
+                episodes = [next(fresh) if f else ep for ep, f in zip(episodes, flags)]
+                reevaluated = sum(len(ep["action"]) for ep in picked)
         batch = episodes_to_batch(episodes, cfg.gamma, cfg.gae_lambda, cfg.reward_scale, self.return_norm)
         scale = cfg.reward_scale if self.return_norm is None else cfg.reward_scale / self.return_norm.std
         n = batch["action"].shape[0]
@@ -288,6 +348,7 @@ class PPOLearner:
             bf16=self.precision == "bf16",
             reward_divisor=1.0 / scale,  # raw rewards are divided by this before GAE
             mean_out_of_box=out_of_box / out_count if out_count else float("nan"),
+            reevaluated_samples=reevaluated,
         )
         return stats
 

@@ -87,10 +87,14 @@ class PolicyLearner:
         if base_version is not None and base_version != self.version:
             return self._stored_result(base_version)
         flat = _resolve(episodes)
+        # a batch acted by another policy (assigned after it was acted, clustering.assign_at:
+        # iteration) gets this policy's log-probs and values before its update; one acted by this
+        # policy at an older version is used as stored (docs/learning.md, "A batch acted by another policy")
+        other = [ep.get("policy_id") is not None and int(ep["policy_id"]) != self.policy_id for ep in flat]
         threads = torch.get_num_threads()
         torch.set_num_threads(self.cfg.runtime.learner_threads)
         try:
-            stats = self.ppo.update(flat)
+            stats = self.ppo.update(flat, reevaluate=other)
         finally:
             torch.set_num_threads(threads)
         self.version += 1
