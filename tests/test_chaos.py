@@ -1,13 +1,15 @@
 """Faults change nothing: a run whose workers, learners, clustering actor, HTTP service and driver
-are killed at random ends where the clean run ends; so does a run that loses a node."""
+are killed at random ends where the clean run ends; so does a run that loses a node. And the faults
+must happen: a run without them fails the verdict."""
 
 import json
+import math
 import subprocess
 import sys
 
 import pytest
 
-from covers_dist.bench.chaos import KINDS, TARGET_KILLS, compare
+from covers_dist.bench.chaos import KINDS, TARGET_KILLS, compare, failures, max_abs_diff
 
 # a short stream: 400 env steps per iteration, learners on both sides of a kill
 SHORT = ["runtime.checkpoint_every=2", "ppo.epochs=2"]
@@ -20,7 +22,9 @@ def _chaos(*args, timeout=1500):
     lines = done.stdout.strip().splitlines()
     # exit 1 with a report: the runs differ (the asserts below say how); without one: the bench failed
     assert done.returncode in (0, 1) and lines, f"exit {done.returncode}; stderr:\n{done.stderr[-4000:]}"
-    return json.loads(lines[-1]), done.stderr
+    report = json.loads(lines[-1])
+    assert done.returncode == (0 if report["verdict"] else 1), (done.returncode, report["failures"])
+    return report, done.stderr
 
 
 def _sets(*overrides):
@@ -34,6 +38,12 @@ def _assert_equal_to_clean(report):
     assert c["logged_doubles"] == 0 and c["logged_missing"] == 0
     assert c["weights_identical"] and c["weights_max_abs_diff"] == 0.0, c
     assert report["equal_to_clean"]
+
+
+def _assert_passed(report):
+    """Equal to the clean run and every fault happened: the verdict holds."""
+    _assert_equal_to_clean(report)
+    assert report["failures"] == [] and report["verdict"], report["failures"]
 
 
 def test_compare_sees_a_changed_assignment_a_double_and_a_changed_weight():
@@ -53,26 +63,109 @@ def test_compare_sees_a_changed_assignment_a_double_and_a_changed_weight():
     assert not c["weights_identical"] and c["weights_max_abs_diff"] == 0.5
 
 
-def test_bad_chaos_arguments_are_refused_with_a_message():
-    for args, words in ((["--interval", "5,1"], "MIN <= MAX"), (["--interval", "x"], "MIN,MAX"),
-                        (["--kinds", "worker,gpu"], "--kinds")):  # fmt: skip
-        done = subprocess.run([sys.executable, "-m", "covers_dist", "bench", "chaos", *args], capture_output=True, text=True)
-        assert done.returncode != 0 and words in done.stderr
+def test_max_abs_diff_does_not_hide_a_nan_or_an_unmatched_inf():
+    import torch
+
+    a = torch.tensor([0.0, 1.0, 2.0])
+    assert max_abs_diff(a, a.clone()) == 0.0
+    nan = torch.tensor([0.0, float("nan"), 2.0])
+    assert math.isnan(max_abs_diff(a, nan)) and math.isnan(max_abs_diff(nan, a))
+    assert math.isnan(max_abs_diff(nan, nan.clone()))  # NaN in both: still not equal
+    assert max(0.0, float("nan")) == 0.0  # what a running max() does with it
+    inf = torch.tensor([0.0, float("inf"), 2.0])
+    assert max_abs_diff(inf, inf.clone()) == 0.0  # the same inf in both: equal
+    assert max_abs_diff(a, inf) == math.inf and max_abs_diff(inf, -inf) == math.inf
+    assert max_abs_diff(a, torch.zeros(4)) == math.inf  # another shape
+
+
+def test_compare_fails_on_a_nan_in_either_run():
+    import torch
+
+    clean = {
+        "assignments": [(0, "new")],
+        "assigned_episodes": [0, 1],
+        "logged_episodes": [0, 1],
+        "weights": {0: {"a": torch.zeros(3), "b": torch.ones(2)}},
+    }
+    # the NaN tensor comes first: a running max() over (NaN, 0.0) would have reported 0.0
+    for where in ("chaos", "clean"):
+        bad = {**clean, "weights": {0: {"a": torch.tensor([0.0, float("nan"), 0.0]), "b": torch.ones(2)}}}
+        c = compare(bad, clean) if where == "clean" else compare(clean, bad)
+        assert not c["weights_identical"], where
+        assert math.isnan(c["weights_max_abs_diff"]) and c["weights_with_nan"] == ["0/a"], where
+        report = {"comparison": c}
+        assert any("NaN" in f for f in failures(report)), where
+    # a parameter missing from one policy is a difference too (not a KeyError)
+    c = compare(clean, {**clean, "weights": {0: {"a": torch.zeros(3)}}})
+    assert not c["weights_identical"] and c["weights_max_abs_diff"] is None
+
+
+def test_the_verdict_needs_every_kind_killed_and_the_node_removed():
+    import torch
+
+    state = {"assignments": [(0, "new")], "assigned_episodes": [0], "logged_episodes": [0],
+             "weights": {0: {"w": torch.zeros(2)}}}  # fmt: skip
+    equal = compare(state, state)
+    every = {k: 1 for k in KINDS}
+    assert failures({"comparison": equal, "kills": every}, set(KINDS)) == []
+    (reason,) = failures({"comparison": equal, "kills": {**every, "learner": 0, "api": 0}}, set(KINDS))
+    assert "no learner / api was killed" in reason
+    # only the kinds asked for are needed
+    assert failures({"comparison": equal, "kills": {"worker": 2}}, {"worker"}) == []
+    (reason,) = failures({"comparison": equal, "kills": {"worker": 0}}, {"worker"})
+    assert "no worker was killed" in reason
+    lost = {"lost": "workers", "lose_after": 3, "node_removed": False}
+    (reason,) = failures({"comparison": equal, "node_loss": lost})
+    assert "not removed" in reason and "--lose-after 3" in reason
+    assert failures({"comparison": equal, "node_loss": {**lost, "node_removed": True}}) == []
+
+
+def test_bad_chaos_arguments_are_refused_with_a_message(tmp_path):
+    """Usage errors, exit status 2, before anything runs (no run directory, no Ray)."""
+    steps = ["--set", "runtime.total_env_steps=4000"]  # 10 iterations of 16 episodes of 25 steps
+    for args, words in (
+        (["--interval", "5,1"], ["MIN <= MAX"]),
+        (["--interval", "x"], ["MIN,MAX"]),
+        (["--kinds", "worker,gpu"], ["--kinds"]),
+        (["--max-kills", "3"], ["--max-kills 3", "5 kinds"]),  # cannot kill each of 5 kinds once
+        (["--node-loss", "workers", "--lose-after", "10", *steps], ["--lose-after 10", "10 iterations", "1 to 9"]),
+        (["--node-loss", "learners", "--lose-after", "400", *steps], ["--lose-after 400", "10 iterations"]),
+        (["--node-loss", "workers", "--lose-after", "0", *steps], ["--lose-after 0", "1 to 9"]),
+    ):
+        out = tmp_path / "out"
+        cmd = [sys.executable, "-m", "covers_dist", "bench", "chaos", "--out", str(out), *args]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 2, (args, done.returncode, done.stderr[-2000:])
+        assert all(w in done.stderr for w in words), (args, done.stderr[-2000:])
+        assert not out.exists() and "clean run" not in done.stdout + done.stderr, args
 
 
 def test_short_chaos_run_equals_the_clean_run():
-    """Every kind killed at least once over a short run (the default suite's version)."""
-    report, _ = _chaos("--interval", "1.5,3", "--seed", "1", "--max-kills", "8", *_sets("runtime.total_env_steps=4000"))
+    """Every kind killed exactly once over a short run (the default suite's version): the last
+    kills of a --max-kills budget go to the kinds not killed yet, so 5 kills are one of each."""
+    report, _ = _chaos("--interval", "1.5,3", "--seed", "1", "--max-kills", str(len(KINDS)),
+                       *_sets("runtime.total_env_steps=4000"))  # fmt: skip
+    assert report["kills"] == {k: 1 for k in KINDS}, report["kills"]
+    _assert_passed(report)
+
+
+@pytest.mark.slow
+def test_a_run_without_its_faults_fails_the_verdict():
+    """Nothing is killed (the first kill would come after the run's end): the runs are equal, but
+    the verdict fails, exit status 1, and says which kind was never killed."""
+    report, stderr = _chaos("--kinds", "api", "--interval", "600,600", *_sets("runtime.total_env_steps=800"))
     _assert_equal_to_clean(report)
-    assert report["kills_total"] >= 3
+    assert report["kills"] == {"api": 0} and report["kills_total"] == 0
+    assert not report["verdict"] and len(report["failures"]) == 1 and "no api was killed" in report["failures"][0]
+    assert "FAIL: no api was killed" in stderr
 
 
 @pytest.mark.slow
 def test_chaos_run_with_twenty_kills_equals_the_clean_run():
     report, _ = _chaos("--seed", "0", "--max-kills", "24", *_sets("runtime.total_env_steps=8000"), timeout=3000)
-    _assert_equal_to_clean(report)
+    _assert_passed(report)
     assert report["kills_total"] >= TARGET_KILLS
-    assert set(report["kills"]) == set(KINDS)
+    assert all(report["kills"][k] >= 1 for k in KINDS), report["kills"]
 
 
 @pytest.mark.slow
@@ -84,4 +177,4 @@ def test_losing_a_node_mid_run_changes_nothing(lose):
     wanted = "worker-" if lose == "workers" else "learner-"
     lost = [name for name in n["on_lost_node"] if name.startswith(wanted)]
     assert lost and set(lost) <= set(n["moved_to_head"])  # they ran on the lost node and came back on the head
-    _assert_equal_to_clean(report)
+    _assert_passed(report)

@@ -1,6 +1,7 @@
 """Learners that survive: a restarted learner comes back with the policy's newest weights,
 optimizer state and version, and a retried update is applied exactly once."""
 
+import math
 import os
 import signal
 import time
@@ -57,6 +58,101 @@ def test_restarted_learner_resumes_its_state_and_applies_a_retried_update_once(b
     _equal(restarted.update(first, 0)[2], ref1[2])
     with pytest.raises(RuntimeError, match="version 2 but an update from version 5"):
         restarted.update(first, 5)
+
+
+class _Died(BaseException):
+    """The learner's process dying: nothing after this point runs (not an ``Exception`` either)."""
+
+
+#: statistics that measure time, not the update
+_TIMING = {"update_time_s", "samples_per_s"}
+
+
+def _same_stats(a, b):
+    assert a.keys() == b.keys()
+    for k in a.keys() - _TIMING:
+        x, y = a[k], b[k]
+        assert x == y or (isinstance(x, float) and math.isnan(x) and math.isnan(y)), (k, x, y)
+
+
+def _same_state(a, b, where="state"):
+    """Two nested learner states (tensors, numbers, dicts, lists) hold the same values."""
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and torch.equal(a, b), where
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), where
+        for k in a:
+            _same_state(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert isinstance(b, (list, tuple)) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same_state(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, (where, a, b)
+
+
+@pytest.mark.parametrize(
+    "lost_update, crash",
+    [(1, "before the save"), (2, "before the save"), (2, "while saving")],
+)
+def test_learner_killed_between_its_update_and_its_live_save_recovers(batches, tmp_path, lost_update, crash):
+    """The process dies after the real update changed the learner in memory and before its live
+    state is on disk (before the save starts, or mid-save, leaving a partial temporary file). The
+    live file still holds the state before that update, so Ray's restarted actor comes back one
+    version behind; the retried call (same episodes, same ``base_version``) then applies the update
+    again from exactly that state and gives what the lost update gave, and what a learner that
+    never crashed gives, down to the optimizer state; later updates go on as in the clean run."""
+    cfg, (first, second) = batches
+    data = (first, second)
+    reference = PolicyLearner(cfg, 0)  # never crashes
+    ref, ref_states = [], []
+    for v, episodes in enumerate(data):
+        ref.append(reference.update(episodes, v))
+        ref_states.append(reference.ppo.state_dict())
+
+    live = live_state_path(tmp_path, 0)
+    learner = PolicyLearner(cfg, 0, run_dir=str(tmp_path))
+    for v in range(lost_update - 1):
+        learner.update(data[v], v)
+
+    def die() -> None:
+        if crash == "while saving":
+            live.parent.mkdir(parents=True, exist_ok=True)
+            (live.parent / f".{live.name}.{os.getpid()}.tmp").write_bytes(b"half a torch file")
+        raise _Died
+
+    learner._save_live = die
+    base = lost_update - 1
+    with pytest.raises(_Died):
+        learner.update(data[base], base)
+    assert learner.version == lost_update  # the update happened, in memory only
+    lost_stats, lost_weights = learner.results[lost_update]
+    del learner
+
+    if lost_update == 1:
+        assert not live.is_file()  # nothing was saved yet: the restart is a fresh learner
+    else:
+        assert torch.load(live, weights_only=False)["version"] == base
+    restarted = PolicyLearner(cfg, 0, run_dir=str(tmp_path))  # what Ray does: the constructor again
+    assert restarted.restored == (lost_update > 1) and restarted.version == base
+    stats, version, weights = restarted.update(data[base], base)  # the caller retries the same call
+    assert version == lost_update == ref[base][1]
+    _equal(weights, lost_weights)
+    _equal(weights, ref[base][2])
+    _same_stats(stats, lost_stats)
+    _same_stats(stats, ref[base][0])
+    _same_state(restarted.ppo.state_dict(), ref_states[base])  # weights, Adam moments, counters, RNG
+    assert torch.load(live, weights_only=False)["version"] == lost_update  # the live file is current again
+    # the rest of the run is the clean run's
+    for v in range(lost_update, len(data)):
+        stats, version, weights = restarted.update(data[v], v)
+        assert version == ref[v][1]
+        _equal(weights, ref[v][2])
+        _same_stats(stats, ref[v][0])
+    _same_state(restarted.ppo.state_dict(), ref_states[-1])
+    again = PolicyLearner(cfg, 0, run_dir=str(tmp_path))  # a later restart finds the newest state
+    assert again.version == len(data)
+    _same_state(again.ppo.state_dict(), ref_states[-1])
 
 
 def test_unreadable_live_state_is_a_clear_error(batches, tmp_path):

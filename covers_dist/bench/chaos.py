@@ -13,10 +13,18 @@ Two runs of the same config and seed, one after the other:
 
 Compared at the end, from the two runs' final checkpoints and logs: the assignment of every
 batch (policy and decision), every episode index logged exactly once, and every policy's final
-weights (exactly equal, or the largest difference). ``--node-loss workers|learners`` runs a
-different fault instead: a local 2-node cluster (:mod:`covers_dist.runtime.local_cluster`) where
-the node holding the rollout workers (or the learners) is removed mid-run; the run continues on
-the surviving node. Target: identical assignments and weights after >= 20 kills.
+weights (exactly equal, or the largest difference; a NaN anywhere is a difference).
+``--node-loss workers|learners`` runs a different fault instead: a local 2-node cluster
+(:mod:`covers_dist.runtime.local_cluster`) where the node holding the rollout workers (or the
+learners) is removed mid-run; the run continues on the surviving node. Target: identical
+assignments and weights after >= 20 kills.
+
+The verdict (exit status 0, ``"verdict": true``) needs the faults as well as the equality: every
+kind named in ``--kinds`` killed at least once (with ``--max-kills N``, the last kills go to the
+kinds not killed yet, so N >= the number of kinds gets each of them), and with ``--node-loss`` the
+node actually removed. Otherwise the command exits 1 and names each reason (``"failures"``).
+Arguments that cannot give the faults (``--max-kills`` below the number of kinds, ``--lose-after``
+at or past the run's last iteration) are refused before anything runs (exit status 2).
 """
 
 from __future__ import annotations
@@ -24,6 +32,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import random
 import signal
@@ -34,13 +43,14 @@ import threading
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NoReturn
 
 from ..config import Config, load_config, load_run_config
 from ..runtime.processes import list_processes, running
 
 KINDS = ("worker", "learner", "clustering", "api", "driver")
 TARGET_KILLS = 20
+PROG = "covers-dist bench chaos"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -51,12 +61,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--interval", default="2,5", help="seconds between kills, MIN,MAX (default: 2,5)")
     p.add_argument("--kinds", default=",".join(KINDS), help=f"what may be killed (default: {','.join(KINDS)})")
     p.add_argument("--seed", type=int, default=0, help="seed of the kill schedule (default: 0)")
-    p.add_argument("--max-kills", type=int, default=0, help="stop killing after this many (default: 0, no limit)")
+    p.add_argument("--max-kills", type=int, default=0,
+                   help="stop killing after this many, at least one per kind (default: 0, no limit)")  # fmt: skip
     p.add_argument(
         "--node-loss", choices=("workers", "learners"),
         help="instead of kills: remove the node holding the rollout workers (or the learners) of a 2-node cluster",
     )  # fmt: skip
-    p.add_argument("--lose-after", type=int, default=3, help="--node-loss: iterations before the node goes (default: 3)")
+    p.add_argument("--lose-after", type=int, default=3,
+                   help="--node-loss: iterations before the node goes, 1 to the run's iterations - 1 "
+                        "(default: 3)")  # fmt: skip
     p.add_argument("--out", help="keep both run directories under OUT (default: a temp dir, removed)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
@@ -105,18 +118,43 @@ def final_state(run_dir: Path) -> dict[str, Any]:
     }
 
 
-def compare(clean: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
-    """What differs between two runs' final states (see :func:`final_state`)."""
+def max_abs_diff(a: Any, b: Any) -> float:
+    """The largest ``|a - b|`` of two tensors, with nothing hidden: 0.0 only when they are equal
+    element by element; NaN when either holds a NaN (NaN is never greater than anything, so a
+    running ``max()`` would drop it); inf where an inf meets anything but the same inf, or the
+    shapes differ."""
     import torch
 
+    a = torch.as_tensor(a).detach().to("cpu", torch.float64)
+    b = torch.as_tensor(b).detach().to("cpu", torch.float64)
+    if a.shape != b.shape:
+        return math.inf
+    if bool(a.isnan().any()) or bool(b.isnan().any()):
+        return math.nan
+    diff = (a - b).abs()
+    diff[a == b] = 0.0  # equal infs (inf - inf is NaN)
+    return float(diff.max()) if diff.numel() else 0.0
+
+
+def compare(clean: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
+    """What differs between two runs' final states (see :func:`final_state`).
+
+    Weights are identical only when both runs hold the same policies with the same parameter
+    names and every tensor pair has :func:`max_abs_diff` 0.0; a NaN in either run's weights is a
+    difference (``weights_max_abs_diff`` is then NaN and ``weights_with_nan`` names the tensors).
+    """
     n = len(clean["assigned_episodes"])
     counts = Counter(other["logged_episodes"])
-    max_diff = 0.0
-    same_keys = clean["weights"].keys() == other["weights"].keys()
+    same_keys = clean["weights"].keys() == other["weights"].keys() and all(
+        w.keys() == other["weights"][pid].keys() for pid, w in clean["weights"].items()
+    )
+    diffs: dict[str, float] = {}
     if same_keys:
         for pid, w in clean["weights"].items():
             for name, t in w.items():
-                max_diff = max(max_diff, float((t.float() - other["weights"][pid][name].float()).abs().max()))
+                diffs[f"{pid}/{name}"] = max_abs_diff(t, other["weights"][pid][name])
+    with_nan = sorted(k for k, d in diffs.items() if math.isnan(d))
+    max_diff = math.nan if with_nan else max(diffs.values(), default=0.0)
     return {
         "batches": len(clean["assignments"]),
         "assignments_identical": clean["assignments"] == other["assignments"],
@@ -125,9 +163,46 @@ def compare(clean: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
         "logged_doubles": sum(c - 1 for c in counts.values()),
         "logged_missing": n - len(set(counts) & set(range(n))),
         "policies": sorted(other["weights"]),
-        "weights_identical": same_keys and max_diff == 0.0,
+        "weights_identical": same_keys and not with_nan and max_diff == 0.0,
         "weights_max_abs_diff": max_diff if same_keys else None,
+        "weights_with_nan": with_nan,
     }
+
+
+def failures(report: dict[str, Any], kinds: set[str] | None = None) -> list[str]:
+    """Why a report of :func:`run` fails its verdict (empty: it passes).
+
+    The chaos run must equal the clean run (:func:`compare`) *and* its faults must have happened:
+    every kind in ``kinds`` killed at least once (``report["kills"]``: kind -> count), and with
+    ``--node-loss`` the node removed (``report["node_loss"]["node_removed"]``).
+    """
+    c = report["comparison"]
+    out: list[str] = []
+    if not c["assignments_identical"]:
+        out.append("the assignments differ from the clean run's")
+    if not c["assigned_exactly_once"]:
+        out.append("not every episode was assigned exactly once")
+    if not c["logged_exactly_once"]:
+        out.append(f"not every episode was logged exactly once ({c['logged_doubles']} doubles, "
+                   f"{c['logged_missing']} missing)")  # fmt: skip
+    if not c["weights_identical"]:
+        if c.get("weights_with_nan"):
+            out.append(f"NaN in the final weights ({', '.join(c['weights_with_nan'][:5])})")
+        elif c["weights_max_abs_diff"] is None:
+            out.append(f"the policies or their parameters differ from the clean run's (chaos run: {c['policies']})")
+        else:
+            out.append(f"the final weights differ from the clean run's (max |diff| {c['weights_max_abs_diff']:g})")
+    if "kills" in report:
+        kills = report["kills"]
+        missing = [k for k in KINDS if k in (kinds if kinds is not None else kills) and kills.get(k, 0) < 1]
+        if missing:
+            counts = ", ".join(f"{k} {v}" for k, v in sorted(kills.items()))
+            out.append(f"no {' / '.join(missing)} was killed; every kind in --kinds must be killed at least once "
+                       f"(kills: {counts})")  # fmt: skip
+    if "node_loss" in report and not report["node_loss"]["node_removed"]:
+        n = report["node_loss"]
+        out.append(f"the node holding the {n['lost']} was not removed (--lose-after {n.get('lose_after')})")
+    return out
 
 
 # ---- the chaos run --------------------------------------------------------------------------------
@@ -199,6 +274,10 @@ class ChaosRun:
             if max_kills and sum(self.kills.values()) >= max_kills:
                 continue
             victims = self._victims(kinds)
+            if max_kills:  # the kills left are needed for the kinds not killed yet: only those
+                unkilled = {k for k in kinds if not self.kills[k]}
+                if max_kills - sum(self.kills.values()) <= len(unkilled):
+                    victims = {k: v for k, v in victims.items() if k in unkilled}
             if not victims:
                 continue
             kind = rng.choice(sorted(victims))
@@ -279,10 +358,14 @@ def node_loss_run(cfg: Config, lose: str, lose_after: int, log: Callable[[str], 
         if lose == "learners":
             ray.kill(holders.pop(0))  # the other node is now free for the learners only
         removed = threading.Event()
+        ended = threading.Event()
         before: dict[str, str] = {}
 
         def lose_node() -> None:
             while trainer.iteration < lose_after:
+                if ended.is_set():  # the run ended first: the node stays (the verdict says so)
+                    log(f"the run ended after iteration {trainer.iteration}, before the node could go")
+                    return
                 time.sleep(0.05)
             before.update({_name(r): r.get("node", "") for r in list_processes(cfg.runtime.run_dir)})
             for h in holders:
@@ -297,11 +380,13 @@ def node_loss_run(cfg: Config, lose: str, lose_after: int, log: Callable[[str], 
         try:
             trainer.run()
         finally:
+            ended.set()
             trainer.close()
         killer.join(5)
         after = {_name(r): r.get("node", "") for r in list_processes(cfg.runtime.run_dir)}
         return {
             "lost": lose,
+            "lose_after": lose_after,
             "node_removed": removed.is_set(),
             "on_lost_node": sorted(n for n, where in before.items() if where == other_id),
             "moved_to_head": sorted(n for n, where in after.items() if before.get(n) == other_id and where == head_id),
@@ -314,25 +399,67 @@ def _name(rec: dict[str, Any]) -> str:
 
 
 # ---- the command ----------------------------------------------------------------------------------
+def _fail(message: str) -> NoReturn:
+    """A one-line usage error on stderr, exit status 2."""
+    print(f"{PROG}: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def _interval(text: str) -> tuple[float, float]:
     try:
         lo, hi = (float(x) for x in text.split(","))
     except ValueError:
-        raise SystemExit(f"covers-dist bench chaos: --interval must be MIN,MAX seconds, got {text!r}") from None
+        _fail(f"--interval must be MIN,MAX seconds, got {text!r}")
     if not 0 < lo <= hi:
-        raise SystemExit(f"covers-dist bench chaos: --interval needs 0 < MIN <= MAX, got {text!r}")
+        _fail(f"--interval needs 0 < MIN <= MAX, got {text!r}")
     return lo, hi
+
+
+def run_iterations(cfg: Config) -> int:
+    """Iterations of a run of ``cfg``: each takes ``clustering.update_every`` episodes of
+    ``env.max_episode_steps`` env steps (no environment ends an episode early), until
+    ``runtime.total_env_steps``."""
+    per_iteration = cfg.clustering.update_every * cfg.env.max_episode_steps
+    return -(-cfg.runtime.total_env_steps // per_iteration)
+
+
+def _check_lose_after(lose_after: int, cfg: Config) -> None:
+    """``--lose-after`` must name an iteration the run completes with more to go, or the node never goes."""
+    n = run_iterations(cfg)
+    if not 1 <= lose_after <= n - 1:
+        _fail(
+            f"--lose-after {lose_after} is impossible: the run has {n} iterations "
+            f"(runtime.total_env_steps={cfg.runtime.total_env_steps} / (clustering.update_every="
+            f"{cfg.clustering.update_every} * env.max_episode_steps={cfg.env.max_episode_steps})), so the node "
+            f"can go only after iteration 1 to {n - 1}" + ("" if n >= 2 else " (none: lengthen the run)")
+        )
+
+
+def _jsonable(x: Any) -> Any:
+    """``x`` with NaN and infinities as strings (strict JSON has no such numbers)."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    return x
 
 
 def run(args: argparse.Namespace) -> int:
     interval = _interval(args.interval)
     kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
     if not kinds or kinds - set(KINDS):
-        raise SystemExit(f"covers-dist bench chaos: --kinds must name some of {', '.join(KINDS)}, got {args.kinds!r}")
+        _fail(f"--kinds must name some of {', '.join(KINDS)}, got {args.kinds!r}")
+    if not args.node_loss and (args.max_kills < 0 or 0 < args.max_kills < len(kinds)):
+        _fail(f"--max-kills {args.max_kills} cannot kill each of the {len(kinds)} kinds in --kinds "
+              f"({','.join(sorted(kinds))}) once: give 0 (no limit) or at least {len(kinds)}")  # fmt: skip
+    base = load_config(args.config, args.overrides)  # validates the config before anything runs
+    if args.node_loss:
+        _check_lose_after(args.lose_after, base)
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="covers-chaos-"))
     out.mkdir(parents=True, exist_ok=True)
     log = (lambda m: print(m, file=sys.stderr, flush=True)) if args.json else (lambda m: print(m, flush=True))
-    base = load_config(args.config, args.overrides)  # validates the config before anything runs
     serial = [*args.overrides, "runtime.serial=true", f"runtime.run_dir={out / 'clean'}", "api.enabled=false"]
     log(f"clean run ({base.runtime.total_env_steps} env steps, serial) in {out / 'clean'}")
     quiet = contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext()
@@ -349,17 +476,23 @@ def run(args: argparse.Namespace) -> int:
         runner = ChaosRun(args.config, chaos, chaos_dir, log)
         log(f"chaos run in {chaos_dir}: a kill every {interval[0]:g}-{interval[1]:g} s among {sorted(kinds)}")
         report["chaos_wall_s"] = round(runner.run(random.Random(args.seed), interval, kinds, args.max_kills), 1)
-        report["kills"] = dict(sorted(runner.kills.items()))
+        report["kinds"] = sorted(kinds)
+        report["kills"] = {k: runner.kills[k] for k in KINDS if k in kinds or runner.kills[k]}
         report["kills_total"] = sum(runner.kills.values())
     report["comparison"] = compare(final_state(out / "clean"), final_state(chaos_dir))
     report["out"] = str(out) if args.out else None
     c = report["comparison"]
-    ok = c["assignments_identical"] and c["weights_identical"] and c["assigned_exactly_once"] and c["logged_exactly_once"]
-    report["equal_to_clean"] = ok
+    same = ("assignments_identical", "weights_identical", "assigned_exactly_once", "logged_exactly_once")
+    report["equal_to_clean"] = all(bool(c[k]) for k in same)
     if "kills_total" in report:
         report["target_kills"] = TARGET_KILLS
+    report["failures"] = failures(report, None if args.node_loss else kinds)
+    report["verdict"] = not report["failures"]
+    ok = report["verdict"]
     if args.json:
-        print(json.dumps(report))
+        for reason in report["failures"]:  # the reasons on stderr too, where the progress lines go
+            log(f"FAIL: {reason}")
+        print(json.dumps(_jsonable(report)))
     else:
         _print(report)
     if not args.out:
@@ -386,3 +519,6 @@ def _print(r: dict[str, Any]) -> None:
         f"{c['weights_max_abs_diff']}) for policies {c['policies']}"
     )
     print("EQUAL to the clean run" if r["equal_to_clean"] else "DIFFERENT from the clean run")
+    for reason in r["failures"]:
+        print(f"FAIL: {reason}")
+    print("verdict: PASS" if r["verdict"] else "verdict: FAIL")
