@@ -3,7 +3,9 @@
 Features come from a lookup, not a network: ``proprio[:, 0]`` holds the group id and
 ``proprio[:, 1]`` an instance id; the feature function maps (group, instance) to a fixed vector and
 then applies a slowly drifting anisotropic rescaling and shift (the "encoder" at that moment),
-the same for O and B_i, as a policy's own encoder does while it trains.
+the same for O and B_i, as a policy's own encoder does while it trains. The false-split rate and
+power measurements (section g) read features from a fixed table of vectors of one distribution
+per group instead (:class:`TableFeatures`).
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import numpy as np
 import pytest
 
 from covers_dist.clustering import AssignmentRecord, CheckpointError, PolicyBank
-from covers_dist.clustering.calibration import NullDistance
+from covers_dist.clustering import calibration
+from covers_dist.clustering.calibration import NullDistance, max_draws, permutation_test
 from covers_dist.clustering.distances import get_distance
 from covers_dist.clustering.features import normalize_pair
 from covers_dist.clustering.metrics import adjusted_rand_index
@@ -97,9 +100,9 @@ def test_one_group_with_drifting_features_threshold_splits_calibrated_does_not()
     assert [r.decision for r in recs] == ["adopt"] + ["recall"] * 119
     # the threshold alone would have split it: some observed distance exceeds d_eps
     assert any(r.nearest_distance > 1.0 for r in recs[2:])
-    # the second batch meets an 8-frame buffer (< 2 |O|): the threshold decides, and the record says so
-    assert recs[1].p_values == {0: None} and recs[1].calibration["fallback"] == [0]
-    assert all(r.p_values[0] is not None and r.calibration["fallback"] == [] for r in recs[2:])
+    # the second batch meets an 8-frame buffer: the pooled test (C(16, 8) splits) runs there too
+    assert all(r.p_values[0] is not None and r.calibration["fallback"] == [] for r in recs[1:])
+    assert all(r.calibration["policies"]["0"]["tested"] for r in recs[1:])
     json.dumps([r.to_dict() for r in recs])
 
 
@@ -256,6 +259,242 @@ def test_rejection_rate_of_same_distribution_batches_is_at_most_the_rate(rate):
     sd = math.sqrt(rate * (1 - rate) / trials)
     assert rejected / trials <= rate + 3 * sd
     assert rejected / trials >= rate / 4  # the knob does something: not a test that never rejects
+
+
+# ---- (g) the exact test at the default rate with W1: false-split rate, power, null sizes --------------
+SCALES = np.array([2.0, 1.0, 1.0, 0.5, 1.0, 0.3, 1.0, 1.0])
+
+
+def group_vectors(rows: int, shift: float, seed: int) -> np.ndarray:
+    """``rows`` vectors of one distribution: an anisotropic 8-dim Gaussian of which a fifth is moved
+    by 4 along the first axis (two clusters, as tasks of one group), plus ``shift`` on every axis."""
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((rows, len(SCALES))) * SCALES
+    x[rng.random(rows) < 0.2, 0] += 4.0
+    return x + shift
+
+
+class TableFeatures:
+    """Features looked up, not computed: ``proprio[:, 1]`` indexes a fixed table of vectors, one
+    block of rows per group (every frame is a fresh row, so a group's frames are i.i.d.)."""
+
+    def __init__(self, blocks: list[np.ndarray]) -> None:
+        self.table = np.concatenate(blocks)
+        self.starts = np.cumsum([0] + [len(b) for b in blocks])
+        self.used = [0] * len(blocks)
+
+    def __call__(self, policy_id: int, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return self.table[obs["proprio"][:, 1].astype(int)]
+
+    def batch(self, group: int, n: int = BATCH) -> dict[str, np.ndarray]:
+        start = int(self.starts[group]) + self.used[group]
+        self.used[group] += n
+        assert start + n <= self.starts[group + 1], "table exhausted"
+        proprio = np.zeros((n, 2), np.float32)
+        proprio[:, 1] = np.arange(start, start + n)
+        return {"image": np.zeros((n, 4, 4, 3), np.uint8), "proprio": proprio}
+
+
+def one_group_false_splits(assignments: int, seed: int) -> tuple[int, int]:
+    """A one-group stream of ``assignments`` batches of 8 frames through a bank at the defaults
+    (W1, false_split_rate 0.001, calibration_samples 200: 999 draws, buffer 128): (false splits
+    = policies made after the first, assignments whose nearest policy rejected)."""
+    feats = TableFeatures([group_vectors(BATCH * assignments, 0.0, seed)])
+    bank = PolicyBank(feats, rule="calibrated", seed=seed)
+    rejected = 0
+    for _ in range(assignments):
+        rec = bank.assign(feats.batch(0))
+        if rec.distances:
+            nearest = min(sorted(rec.distances), key=lambda pid: rec.distances[pid])
+            test = rec.calibration["policies"][str(nearest)]
+            assert test["tested"] and rec.calibration["max_draws"] == 999
+            rejected += test["accepted"] is False
+    assert sum(r.decision == "new" for r in bank.history) == len(bank) - 1
+    return len(bank) - 1, rejected
+
+
+def binomial_bound(rate: float, n: int) -> float:
+    """The rate plus three binomial standard errors at ``n`` trials."""
+    return rate + 3.0 * math.sqrt(rate * (1.0 - rate) / n)
+
+
+def test_false_split_rate_at_the_default_rate_with_w1():
+    """1,000 assignments of one group (999 of them tested; 8-frame batches): false splits at most
+    the rate plus three binomial standard errors (0.001 + 0.003, i.e. at most 3)."""
+    n = 1000
+    splits, rejected = one_group_false_splits(n, seed=0)
+    print(f"one group, {n} assignments: {splits} false splits, {rejected} rejections by the nearest policy")
+    assert splits / n <= binomial_bound(0.001, n)
+    assert rejected / n <= binomial_bound(0.001, n)
+
+
+def split_power(shift: float, trials: int, seed: int) -> tuple[float, list[AssignmentRecord], list[float]]:
+    """A bank at the defaults holding one group (16 batches: a full 128-frame buffer); each trial
+    asks what it would do with a batch of a second group (the same distribution moved by ``shift``
+    on every axis), then assigns one more batch of the first group. Returns the fraction of trials
+    decided ``new``, the what-if records and the W1 of the first group's batches."""
+    feats = TableFeatures(
+        [group_vectors(BATCH * (16 + trials), 0.0, seed), group_vectors(BATCH * trials, shift, seed + 1000)]
+    )
+    bank = PolicyBank(feats, rule="calibrated", seed=seed)
+    for _ in range(16):
+        bank.assign(feats.batch(0))
+    recs, same = [], []
+    for _ in range(trials):
+        recs.append(bank.what_if(feats.batch(1)))
+        rec = bank.assign(feats.batch(0))
+        assert rec.decision == "recall"
+        same.append(rec.distances[0])
+    return sum(r.decision == "new" for r in recs) / trials, recs, same
+
+
+def w1_summary(recs: list[AssignmentRecord], same: list[float]) -> str:
+    other = [r.distances[0] for r in recs]
+    return (
+        f"W1 second group median {np.median(other):.2f}, "
+        f"first group median {np.median(same):.2f} max {max(same):.2f}"
+    )
+
+
+def test_power_on_two_groups_at_the_default_rate_with_w1():
+    """Batches of a clearly different second group (moved 1.5 standard units on every axis; W1
+    about 1.2 buffer units against at most 0.8 for batches of the first group) are split."""
+    power, recs, same = split_power(1.5, trials=20, seed=0)
+    print(f"two groups, shift 1.5: power {power:.2f} over {len(recs)} batches; {w1_summary(recs, same)}")
+    assert power >= 0.9
+    for r in recs:
+        test = r.calibration["policies"]["0"]
+        assert test["tested"] and test["decided_by"] == "permutation"
+        if r.decision == "new":  # a rejection needs the complete test, and no draw at or above the observed
+            assert test["draws"] == 999 and test["exceedances"] == 0 and r.p_values[0] == pytest.approx(0.001)
+            assert r.calibration["accepted"] == []
+
+
+@pytest.mark.slow  # about 1-2 min on 2 cores (`make test-slow`)
+def test_false_split_rate_and_power_over_more_assignments():
+    """10,000 one-group assignments (5 seeds x 2,000) at the defaults, and the power at smaller
+    separations of the second group (30 batches each)."""
+    n, splits, rejected = 0, 0, 0
+    for seed in range(1, 6):
+        s, r = one_group_false_splits(2000, seed)
+        n, splits, rejected = n + 2000, splits + s, rejected + r
+    print(f"one group, {n} assignments: {splits} false splits, {rejected} rejections by the nearest policy")
+    assert splits / n <= binomial_bound(0.001, n)
+    assert rejected / n <= binomial_bound(0.001, n)
+    powers = {}
+    for shift in (0.5, 0.75, 1.0, 1.5):
+        powers[shift], recs, same = split_power(shift, trials=30, seed=1)
+        print(f"two groups, shift {shift}: power {powers[shift]:.2f} over {len(recs)} batches;", w1_summary(recs, same))
+    assert powers[1.5] >= 0.9 and powers[0.5] <= powers[1.0] <= powers[1.5]
+
+
+def test_null_draws_have_the_sizes_of_o_and_b(monkeypatch):
+    """Every null draw splits the pooled m + n vectors, without replacement, into m playing O and n
+    playing B_i; the distance sees sets of those sizes (W1's transport problem is m x n)."""
+    rng = np.random.default_rng(0)
+    m, n = 8, 40
+    f_o, f_b = rng.normal(size=(m, 3)) + 0.3, rng.normal(size=(n, 3))
+    splits, shapes = [], []
+    real_split = calibration.null_split
+
+    def recording_split(gen, mm, nn):
+        o_idx, b_idx = real_split(gen, mm, nn)
+        splits.append((o_idx, b_idx))
+        return o_idx, b_idx
+
+    monkeypatch.setattr(calibration, "null_split", recording_split)
+    real_cost = calibration.transport_cost
+
+    def recording_cost(a, b, cost, max_iter):
+        shapes.append((len(a), len(b), cost.shape))
+        return real_cost(a, b, cost, max_iter)
+
+    monkeypatch.setattr(calibration, "transport_cost", recording_cost)
+    res = permutation_test(f_o, f_b, "wasserstein", "buffer", 0.01, 99, np.random.default_rng(1))
+    assert len(splits) == res.draws >= 1 and len(shapes) == res.draws + 1  # + the observed statistic, d(O, B_i)
+    for o_idx, b_idx in splits:
+        assert len(o_idx) == m and len(b_idx) == n
+        assert sorted(np.concatenate([o_idx, b_idx]).tolist()) == list(range(m + n))
+    assert set(shapes) == {(m, n, (m, n))}
+
+    seen = []  # the generic path (Mahalanobis) sees sets of m and n vectors
+    real_dist = get_distance("mahalanobis")
+
+    def recording_dist(a, b):
+        seen.append((a.shape, b.shape))
+        return real_dist(a, b)
+
+    monkeypatch.setattr(calibration, "get_distance", lambda name: recording_dist)
+    splits.clear()
+    res = permutation_test(f_o, f_b, "mahalanobis", "buffer", 0.01, 99, np.random.default_rng(1))
+    assert len(seen) == res.draws + 1 and set(seen) == {((m, 3), (n, 3))}
+    assert len(splits) == res.draws
+
+
+def test_observed_statistic_and_p_value():
+    """The observed value is d(O, B_i); p = (1 + exceedances) / (1 + draws); a test rejects only
+    with all draws made, and the number of draws makes the rate attainable."""
+    assert max_draws(0.001, 200) == 999 and max_draws(0.02, 200) == 200 and max_draws(0.3, 20) == 20
+    for rate in (0.001, 0.003, 0.01, 0.05, 0.3):
+        assert 1.0 / (1 + max_draws(rate, 20)) <= rate
+    rng = np.random.default_rng(2)
+    f_b = rng.normal(size=(64, 4))
+    f_o = rng.normal(size=(8, 4)) + 0.5
+    pooled = NullDistance(np.concatenate([f_o, f_b]), 8, "wasserstein", "buffer")
+    assert pooled(np.arange(72)) == pytest.approx(get_distance("wasserstein")(*normalize_pair(f_o, f_b, "buffer")))
+
+    def run(f_o, rate, draws, seed):
+        return permutation_test(f_o, f_b, "wasserstein", "buffer", rate, draws, np.random.default_rng(seed))
+
+    same = run(rng.normal(size=(8, 4)), 0.001, 999, 0)
+    assert same.accepted and same.p_value == (1 + same.exceedances) / (1 + same.draws)
+    assert same.draws < 999 and (1 + same.exceedances) / 1000 > 0.001  # stopped once acceptance was settled
+    far = run(rng.normal(size=(8, 4)) + 5.0, 0.001, 999, 0)
+    assert not far.accepted and far.draws == 999 and far.exceedances == 0 and far.p_value == 0.001
+    runs = [run(f_o, 0.01, 99, 5) for _ in range(2)]
+    assert runs[0] == runs[1]  # deterministic given the generator's state
+
+
+def test_policies_not_examined_are_not_recorded_as_accepted():
+    """With two well-separated groups, a batch of group 0 is tested against policy 0 (nearest),
+    which accepts; policy 1 is not examined: ``tested: False``, no draws, no p-value, not in
+    ``accepted``. A batch of a third group is tested against both (each with all draws)."""
+    feats = TableFeatures([group_vectors(400, 0.0, 0), group_vectors(400, 30.0, 1), group_vectors(400, -30.0, 2)])
+    bank = PolicyBank(feats, rule="calibrated", false_split_rate=0.01, calibration_samples=50)
+    for g in (0, 0, 0, 1, 1, 1):
+        bank.assign(feats.batch(g))
+    assert len(bank) == 2
+    rec = bank.assign(feats.batch(0))
+    cal = rec.calibration
+    assert rec.decision == "recall" and rec.policy_id == 0
+    assert cal["test"] == "pooled_permutation" and cal["max_draws"] == 99
+    assert cal["policies"]["0"]["tested"] and cal["policies"]["0"]["accepted"] is True
+    assert cal["policies"]["1"] == {
+        "tested": False, "draws": 0, "exceedances": None, "p_value": None, "decided_by": None, "accepted": None
+    }
+    assert cal["accepted"] == [0] and cal["fallback"] == [] and rec.p_values[1] is None and cal["draws"]["1"] == 0
+    rec = bank.what_if(feats.batch(2))
+    assert rec.decision == "new" and rec.calibration["accepted"] == []
+    tests = rec.calibration["policies"].values()
+    assert all(t["tested"] and t["draws"] == 99 and t["accepted"] is False for t in tests)
+    assert AssignmentRecord.from_dict(json.loads(json.dumps(rec.to_dict()))) == rec
+
+
+def test_too_few_splits_or_frames_fall_back_to_the_threshold():
+    """A one-frame query has 129 splits against a 128-frame buffer, fewer than 10 x 999: the
+    threshold decides (p-value None, ``decided_by: threshold``); so it does for a 4-frame buffer."""
+    feats = TableFeatures([group_vectors(400, 0.0, 0)])
+    bank = PolicyBank(feats, rule="calibrated")
+    for _ in range(16):
+        bank.assign(feats.batch(0))
+    rec = bank.what_if(feats.batch(0, n=1))
+    test = rec.calibration["policies"]["0"]
+    assert not test["tested"] and test["decided_by"] == "threshold" and rec.calibration["fallback"] == [0]
+    assert test["accepted"] == (rec.distances[0] <= bank.threshold) and rec.p_values == {0: None}
+    small = PolicyBank(feats, rule="calibrated")
+    small.assign(feats.batch(0, n=4))
+    rec = small.assign(feats.batch(0, n=4))
+    assert rec.calibration["fallback"] == [0] and rec.calibration["policies"]["0"]["decided_by"] == "threshold"
 
 
 # ---- the null's fast path equals the generic distance ------------------------------------------------

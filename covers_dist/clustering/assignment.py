@@ -16,8 +16,9 @@ first policy of a group is made (``adopt`` / ``new``) the first time the group i
 batches of that group ``recall`` it. No distances are computed in that mode.
 
 The **calibrated** rule (``clustering.rule: calibrated``, :func:`decide_calibrated`) replaces the
-fixed threshold by a per-policy test: policy ``i`` *accepts* ``O`` when its permutation p-value
-is above ``clustering.false_split_rate`` (the bank computes the p-values, see
+fixed threshold by a per-policy test: policy ``i`` *accepts* ``O`` unless an exact permutation
+test (``O`` and ``B_i`` pooled and split at random) gives a p-value at or below
+``clustering.false_split_rate`` (the bank runs the tests, see
 :meth:`~covers_dist.clustering.bank.PolicyBank.calibrated_distances`); the nearest accepting
 policy is recalled, and a new policy is made only when every policy rejects (``recall_at_cap``
 at the cap, as above).
@@ -88,11 +89,16 @@ class AssignmentRecord:
 
     Calibrated rule only (both None under the threshold rule, and then left out of
     :meth:`to_dict`, so threshold records and older saved histories read as before):
-    ``p_values`` maps every policy id to its permutation p-value, or to None where the buffer was
-    too small for a null distribution and the threshold decided for that policy; ``calibration``
-    holds ``false_split_rate``, ``samples`` (the configured number of subsets), ``draws``
-    (``{"<id>": subsets drawn}``), ``fallback`` (ids decided by the threshold) and ``accepted``
-    (ids that accepted ``O``).
+    ``p_values`` maps every policy id to its permutation p-value, or to None where no test ran (the
+    buffer was too small for a null distribution and the threshold decided for that policy, or a
+    nearer policy had accepted and this one was not examined); ``calibration`` holds
+    ``false_split_rate``, ``samples`` (``clustering.calibration_samples``), ``test``
+    (``"pooled_permutation"``; absent in records made before the exact test), ``max_draws`` (the
+    draws of a complete test), ``draws`` (``{"<id>": null draws made}``), ``fallback`` (ids
+    decided by the threshold), ``accepted`` (ids that accepted ``O``, by their test or the
+    threshold; never a policy that was not examined) and ``policies`` (``{"<id>": {"tested",
+    "draws", "exceedances", "p_value", "decided_by", "accepted"}}``, see
+    :class:`~covers_dist.clustering.bank.Calibration`).
     """
 
     index: int

@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 
 from .assignment import RULES, AssignmentRecord, decide, decide_calibrated
-from .calibration import NullDistance
+from .calibration import max_draws, permutation_test, splits_suffice
 from .buffer import REPLACEMENT_RULES, ObservationBuffer, check_obs
 from .distances import get_distance
 from .features import FEATURE_NORMS, FeatureFn, check_features, normalize_pair
@@ -36,8 +36,9 @@ __all__ = ["PolicyBank", "MODES"]
 
 MODES: tuple[str, ...] = ("distance", "ground_truth")
 
-#: Below this many buffer frames (or below ``2 |O|``) the calibrated rule has no meaningful null
-#: distribution and the threshold decides for that policy.
+#: Below this many buffer frames (or with too few distinct splits of ``O`` and ``B_i`` pooled, see
+#: :func:`~covers_dist.clustering.calibration.splits_suffice`) the calibrated rule has no
+#: meaningful null distribution and the threshold decides for that policy.
 MIN_CALIBRATION_BUFFER = 8
 
 _CALIBRATION_KEY = 0xCA1B  # spawn key of the calibration generator (buffers use entropy [seed, policy id])
@@ -45,20 +46,32 @@ _CALIBRATION_KEY = 0xCA1B  # spawn key of the calibration generator (buffers use
 
 @dataclass
 class Calibration:
-    """Output of :meth:`PolicyBank.calibrated_distances`."""
+    """Output of :meth:`PolicyBank.calibrated_distances`.
+
+    ``accepted[i]`` is what the decision rule reads: False for a policy that was not examined
+    (farther than one that accepted), whose entry in ``tests`` says ``tested: False`` and
+    ``accepted: None``. ``tests[i]``: ``tested`` (a permutation test ran), ``draws``,
+    ``exceedances`` and ``p_value`` (None without a test), ``decided_by`` (``"permutation"``,
+    ``"threshold"`` for a pool too small for the test, None when not examined) and ``accepted``
+    (True / False, None when not examined)."""
 
     distances: dict[int, float]
     p_values: dict[int, float | None]
     accepted: dict[int, bool]
     draws: dict[int, int]
+    max_draws: int = 0
+    tests: dict[int, dict[str, Any]] = field(default_factory=dict)
 
     def record_info(self, rate: float, samples: int) -> dict[str, Any]:
         return {
             "false_split_rate": rate,
             "samples": samples,
+            "test": "pooled_permutation",
+            "max_draws": self.max_draws,
             "draws": {str(k): v for k, v in sorted(self.draws.items())},
-            "fallback": sorted(k for k, p in self.p_values.items() if p is None),
-            "accepted": sorted(k for k, a in self.accepted.items() if a),
+            "fallback": sorted(k for k, t in self.tests.items() if t["decided_by"] == "threshold"),
+            "accepted": sorted(k for k, t in self.tests.items() if t["accepted"]),
+            "policies": {str(k): dict(t) for k, t in sorted(self.tests.items())},
         }
 
 
@@ -213,40 +226,40 @@ class PolicyBank:
 
         For policy ``i`` with ``m = |O|`` and ``n = |B_i|``: the observed ``d(O, B_i)`` (the bank's
         metric and feature normalization, features from one encoder pass over ``O`` and ``B_i``)
-        is compared with ``d(O', B_i minus O')`` for random subsets ``O'`` of ``m`` buffer frames,
-        resampled in that same feature space: ``p_i = (1 + #{null >= observed}) / (1 + draws)``,
-        and ``i`` accepts when ``p_i > false_split_rate``. Policies are tested nearest first.
-        ``calibration_samples`` subsets are drawn per policy; while no nearer policy has accepted
-        (so that ``i``'s answer decides), and these leave ``i`` rejecting only because ``1 / (1 +
-        draws)`` cannot go below the rate, the draws continue up to ``ceil(1 / rate) - 1`` in all
-        (the decision is then that of a test with that many draws). With ``n < 2m`` or ``n <``
-        :data:`MIN_CALIBRATION_BUFFER` the threshold decides for ``i`` (p-value None).
+        is compared with ``d(O*, B*)`` for random splits of ``O`` and ``B_i`` pooled into ``m`` and
+        ``n`` vectors, in that same feature space (an exact permutation test,
+        :func:`~covers_dist.clustering.calibration.permutation_test`): ``p_i = (1 + #{null >=
+        observed}) / (1 + draws)``, and ``i`` accepts unless the test with all ``N =
+        max(calibration_samples, ceil(1 / rate) - 1)`` draws has ``p_i <= false_split_rate``
+        (draws stop once acceptance is settled). Policies are examined nearest first, and only
+        until one accepts: the decision rule recalls the nearest accepting policy, so farther ones
+        are not tested (recorded as ``tested: False``, never as accepted). With ``n <``
+        :data:`MIN_CALIBRATION_BUFFER` or too few distinct splits of the pool
+        (:func:`~covers_dist.clustering.calibration.splits_suffice`) the threshold decides for
+        ``i`` (p-value None, ``decided_by: "threshold"``).
         """
         distance = get_distance(self.metric)
-        norm, rate, samples = self.feature_norm, self.false_split_rate, self.calibration_samples
-        full = max(samples, math.ceil(1.0 / rate - 1e-9) - 1)  # 1 / (1 + full) <= rate
+        norm, rate = self.feature_norm, self.false_split_rate
+        full = max_draws(rate, self.calibration_samples)  # 1 / (1 + full) <= rate
         pairs = self._feature_pairs(obs, policies)
         observed = {pid: distance(*normalize_pair(f_o, f_b, norm)) for pid, f_o, f_b in pairs}
-        cal = Calibration(distances=observed, p_values={}, accepted={}, draws={})
+        cal = Calibration(distances=observed, p_values={}, accepted={}, draws={}, max_draws=full)
         decided = False
         for pid, f_o, f_b in sorted(pairs, key=lambda t: (observed[t[0]], t[0])):
             d_obs, m, n = observed[pid], len(f_o), len(f_b)
-            if n < 2 * m or n < MIN_CALIBRATION_BUFFER:
-                cal.p_values[pid], cal.draws[pid] = None, 0
-                cal.accepted[pid] = d_obs <= self.threshold
+            if decided:  # a nearer policy accepted: this one cannot change the decision
+                test = {"tested": False, "draws": 0, "exceedances": None, "p_value": None,
+                        "decided_by": None, "accepted": None}
+            elif n < MIN_CALIBRATION_BUFFER or not splits_suffice(m, n, full):
+                test = {"tested": False, "draws": 0, "exceedances": None, "p_value": None,
+                        "decided_by": "threshold", "accepted": bool(d_obs <= self.threshold)}
             else:
-                null = NullDistance(f_b, m, self.metric, norm)  # B_i's features, resampled below
-                bar = d_obs - 1e-9 * (1.0 + abs(d_obs))  # ties (to rounding) count as exceedances
-                count = drawn = 0
-                for target in (samples, full):
-                    for _ in range(target - drawn):
-                        if null(rng.permutation(n)) >= bar:
-                            count += 1
-                    drawn = target
-                    if decided or (1 + count) / (1 + full) > rate:
-                        break  # more draws can no longer change the decision
-                cal.p_values[pid], cal.draws[pid] = (1 + count) / (1 + drawn), drawn
-                cal.accepted[pid] = cal.p_values[pid] > rate
+                res = permutation_test(f_o, f_b, self.metric, norm, rate, full, rng)
+                test = {"tested": True, "draws": res.draws, "exceedances": res.exceedances,
+                        "p_value": res.p_value, "decided_by": "permutation", "accepted": res.accepted}
+            cal.tests[pid] = test
+            cal.p_values[pid], cal.draws[pid] = test["p_value"], test["draws"]
+            cal.accepted[pid] = bool(test["accepted"])
             decided = decided or cal.accepted[pid]
         return cal
 
