@@ -195,8 +195,9 @@ class ClusteringConfig:
     rule: Literal["threshold", "calibrated"] = _f(
         "threshold",
         "Decision rule: threshold = recall the nearest policy when its distance <= d_eps, else a new one (the "
-        "paper's); calibrated = per-policy permutation test of d(O, B_i) against d(O', B_i minus O') for random "
-        "subsets O' of B_i in the policy's current feature space; a new policy only when every policy rejects "
+        "paper's); calibrated = per-policy exact permutation test of d(O, B_i) against d(O', B') for random splits "
+        "of the pooled O and B_i into sets of sizes |O| and |B_i|, in the policy's current feature space; a new "
+        "policy only when every policy rejects "
         "(docs/clustering.md, 'Two decision rules').",
     )
     false_split_rate: float = _f(
@@ -207,8 +208,9 @@ class ClusteringConfig:
     )
     calibration_samples: int = _f(
         200,
-        "Calibrated rule: random subsets O' drawn per policy and assignment for the null distribution "
-        "(more are drawn, up to ceil(1/false_split_rate) - 1, only when they can change the decision).",
+        "Calibrated rule: least number of random splits of the pooled O and B_i per policy and assignment for "
+        "the null distribution; max(this, ceil(1/false_split_rate) - 1) are drawn, stopped early once the "
+        "decision is settled.",
         min=20,
     )
     assign_at: Literal["iteration", "reset"] = _f(
