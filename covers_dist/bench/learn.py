@@ -335,7 +335,25 @@ class _CoversContender:
             self.trainer.close()
 
 
-class _RLlibContender:
+class _PeerContender:
+    """What the peers share: one policy acting on every transform, nothing in flight at an evaluation."""
+
+    iterations = 0
+    _hp: dict[str, Any] = {}
+
+    choose = staticmethod(_only_policy)
+
+    def before_eval(self) -> None:
+        """Nothing in flight: a peer's training call returns after its update."""
+
+    def extra(self) -> dict[str, Any]:
+        return {"iterations": self.iterations}
+
+    def hyperparameters(self) -> dict[str, Any]:
+        return dict(self._hp)
+
+
+class _RLlibContender(_PeerContender):
     """RLlib's PPO (new API stack) on the group's transforms, with the network ``PEERS[name]`` names."""
 
     def __init__(self, name: str, cfg: Any, elements: Sequence[str]) -> None:
@@ -360,9 +378,6 @@ class _RLlibContender:
         self.steps += int(result[ENV_RUNNER_RESULTS][NUM_ENV_STEPS_SAMPLED])
         self.iterations += 1
 
-    def before_eval(self) -> None:
-        """Nothing in flight: ``train()`` returns once the weights are synced to the env runners."""
-
     def weights_map(self) -> dict[int, tuple[int, Any]]:
         from ..evaluation.episodes import GreedyPolicy
 
@@ -372,19 +387,11 @@ class _RLlibContender:
                           image_only=self.network == "default")  # fmt: skip
         return {0: (self.iterations, GreedyPolicy(act, "rllib"))}
 
-    choose = staticmethod(_only_policy)
-
-    def extra(self) -> dict[str, Any]:
-        return {"iterations": self.iterations}
-
-    def hyperparameters(self) -> dict[str, Any]:
-        return dict(self._hp)
-
     def close(self) -> None:
         self.algo.stop()
 
 
-class _SB3Contender:
+class _SB3Contender(_PeerContender):
     """Stable-Baselines3's PPO (``MultiInputPolicy`` on image + proprio) on the group's transforms."""
 
     def __init__(self, cfg: Any, elements: Sequence[str]) -> None:
@@ -404,22 +411,11 @@ class _SB3Contender:
         self.model.learn(total_timesteps=self._batch, reset_num_timesteps=False)
         self.iterations += 1
 
-    def before_eval(self) -> None:
-        """Nothing in flight: ``learn()`` returns after its update."""
-
     def weights_map(self) -> dict[int, tuple[int, Any]]:
         from ..evaluation.episodes import GreedyPolicy
         from .sb3_peer import sb3_greedy
 
         return {0: (self.iterations, GreedyPolicy(sb3_greedy(self.model), "sb3"))}
-
-    choose = staticmethod(_only_policy)
-
-    def extra(self) -> dict[str, Any]:
-        return {"iterations": self.iterations}
-
-    def hyperparameters(self) -> dict[str, Any]:
-        return dict(self._hp)
 
     def close(self) -> None:
         self.model.get_env().close()
