@@ -87,6 +87,7 @@ def test_short_serial_covers_run_writes_curves(tmp_path):
         assert sorted(p["success"]) == sorted(D4)
         assert all(0.0 <= v <= 1.0 for v in p["success"].values())
         assert p["distinct_initial_states"] == 8 * 2 and p["episodes_per_transform"] == 2
+        assert p["pooled"]["n"] == 16 and p["pooled"]["successes"] == round(p["mean_success"] * 16)
         assert all(lo <= p["success"][g] <= hi for g, (lo, hi) in p["ci95"].items())
         assert p["min_success"] == min(p["success"].values())
         assert p["mean_success"] == pytest.approx(np.mean(list(p["success"].values())))
@@ -246,6 +247,7 @@ class _FakeEvaluator:
         hit = (contender.success_at is not None and steps >= contender.success_at) or steps == contender.lucky_at
         success = {g: (1.0 if hit else 0.5 if g == "e" else 0.0) for g in D4}
         return {"success": success, "ci95": {g: [0.0, 1.0] for g in D4}, "policy": {g: 0 for g in D4},
+                "pooled": {"successes": 0, "n": 128, "ci95": [0.0, 0.03]},
                 "episodes_per_transform": 16, "distinct_initial_states": 128}  # fmt: skip
 
 

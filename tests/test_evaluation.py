@@ -325,7 +325,11 @@ def test_run_evaluation_spreads_work_and_gives_a_new_policy_fresh_weights():
     reach, push = ev["pairs"]
     assert reach["agnostic_policy"] == 0 and set(reach["results"]) == KEYS
     assert push["agnostic_policy"] == 5 and push["agnostic_decision"] == "new" and push["oracle_policy"] is None
-    assert push["results"]["greedy/agnostic"] == {"policy_id": 5, "success": 1.0, "return": 0.0, "episodes": 2}
+    got = push["results"]["greedy/agnostic"]
+    assert {k: got[k] for k in ("policy_id", "success", "return", "episodes", "n", "successes")} == {
+        "policy_id": 5, "success": 1.0, "return": 0.0, "episodes": 2, "n": 2, "successes": 2,
+    }  # fmt: skip
+    assert got["distinct_initial_states"] is None  # these workers report no initial states
     assert ev["eval_episodes"] == 4 * 2
     # 2 pairs and 4 jobs dealt round-robin over 3 workers
     assert [w.calls for w in workers] == [
@@ -479,7 +483,7 @@ def test_eval_command_is_read_only_deterministic_and_matches_the_training_pass(r
     run = tmp_path / "run"
     shutil.copytree(on, run)
     before = snapshot(run)
-    first = eval_json(capsys, run, "--tasks", "reach")
+    first = eval_json(capsys, run, "--tasks", "reach", "--episodes", "2")  # the training passes' episodes
     assert snapshot(run) == before  # --no-write: nothing at all
     assert first["pass"]["iteration"] == 3 and first["pass"]["source"] == "checkpoint ckpt-000003"
     assert first["metrics"]["passes"] == 2  # the training's pass at iteration 2, then this one
@@ -495,7 +499,7 @@ def test_eval_command_is_read_only_deterministic_and_matches_the_training_pass(r
         )
         assert r["agnostic_distance"] == pytest.approx(t["agnostic_distance"], rel=1e-5)
     # again, written this time: the same pass, appended to eval.jsonl and to nothing else
-    assert main(["eval", str(run), "--tasks", "reach"]) == 0
+    assert main(["eval", str(run), "--tasks", "reach", "--episodes", "2"]) == 0
     out = capsys.readouterr().out
     assert "| reach |" in out and "average success" in out and "appended to" in out
     after = snapshot(run)

@@ -215,9 +215,13 @@ class GroupEvaluation:
         missing = [g for g, res in per.items() if res is None]
         if missing:
             raise RuntimeError(f"no policy could act on transform(s) {missing}")
+        from ..evaluation.stats import wilson_interval
+
+        k, n = sum(int(res["successes"]) for res in per.values()), sum(int(res["n"]) for res in per.values())
         return {
             "success": {g: float(res["success"]) for g, res in per.items()},
             "ci95": {g: res["ci95"] for g, res in per.items()},
+            "pooled": {"successes": k, "n": n, "ci95": [round(x, 4) for x in wilson_interval(k, n)]},
             "policy": {g: res["policy_id"] for g, res in per.items()},
             "episodes_per_transform": self.episodes,
             "distinct_initial_states": int(ev["distinct_initial_states"]),
@@ -459,6 +463,7 @@ def race(
             "mean_success": float(np.mean(values)),
             "success": out["success"],
             "ci95": out["ci95"],
+            "pooled": out["pooled"],  # every transform's episodes together: the mean's n and interval
             "episodes_per_transform": out["episodes_per_transform"],
             "distinct_initial_states": out["distinct_initial_states"],
             "policy": out["policy"],
