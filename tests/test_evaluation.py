@@ -50,6 +50,10 @@ TINY = [
     "runtime.total_env_steps=600",
     "runtime.checkpoint_every=100",
     "eval.episodes=2",
+    # sequential: no update in flight at the end, so the final pass's bank (its published encoders)
+    # is the checkpoint's; a pipelined run's checkpoint holds the in-flight update's newest weights,
+    # and `covers-dist eval` may then choose another policy than the final pass did
+    "runtime.pipeline=false",
 ]
 KEYS = {f"{m}/{s}" for m in ("greedy", "stochastic") for s in ("agnostic", "oracle")}
 

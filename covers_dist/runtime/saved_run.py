@@ -98,17 +98,8 @@ def load_saved_run(run_dir: str | Path, log: Any = print) -> SavedRun:
         state = torch.load(f, map_location="cpu", weights_only=False)
         weights[pid] = model_weights(state, names, str(f))
         versions[pid] = int(state.get("version", 0)) if isinstance(state, dict) else 0
-    # the bank's encoders as they were when the checkpoint was taken: a policy with an update in
-    # flight (pipelined loop) still had its published weights there (sampling-N.pt), while it acts
-    # with its newest; so `covers-dist eval` chooses policies exactly as the training's passes did
-    bank_weights = dict(weights)
-    for f in sorted((ckpt / "learners").glob("sampling-*.pt")):
-        pid = int(f.stem.split("-", 1)[1])
-        if pid in bank_weights:
-            published = torch.load(f, map_location="cpu", weights_only=False)
-            bank_weights[pid] = {k: v for k, v in published.items() if k in names} or bank_weights[pid]
     service = ClusteringService(cfg, read_only=True)
-    service.load(str(ckpt / "bank"), weights=bank_weights)
+    service.load(str(ckpt / "bank"), weights=weights)
     driver = json.loads((ckpt / "driver.json").read_text()) if (ckpt / "driver.json").is_file() else {}
     warning = probe_mismatch(driver.get("network_probe"), model.probe_outputs(), cfg)
     if warning:
