@@ -17,29 +17,18 @@ group (:class:`~covers_dist.bench.rllib_peer.PeerTask`).
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from ..config import Config
-from .rllib_peer import PeerTask, ppo_settings
+from .rllib_peer import peer_env, ppo_settings
 
 __all__ = ["build_sb3_ppo", "sb3_hyperparameters", "sb3_greedy"]
 
 #: VecNormalize's reward clip, set out of reach (covers-dist does not clip rewards).
 _NO_CLIP = 1e9
-
-
-def _make_env(env_config: dict[str, Any], scale: float) -> Callable[[], Any]:
-    def make() -> Any:
-        import gymnasium as gym
-
-        env: gym.Env = PeerTask(env_config)
-        if scale != 1.0:
-            env = gym.wrappers.TransformReward(env, lambda r: scale * r)
-        return env
-
-    return make
 
 
 def build_sb3_ppo(cfg: Config, transforms: Sequence[str]) -> Any:
@@ -58,7 +47,9 @@ def build_sb3_ppo(cfg: Config, transforms: Sequence[str]) -> Any:
     n_envs = cfg.runtime.num_workers * cfg.runtime.envs_per_worker
     base = {"config": config_to_dict(cfg), "task": cfg.env.tasks[0], "image_only": False,
             "transforms": list(transforms)}  # fmt: skip
-    makers = [_make_env({**base, "seed": cfg.seed + i}, hp["reward"]["scale"]) for i in range(n_envs)]
+    # the reward scale in each env (peer_env); the return normalisation is SB3's own, over all envs
+    reward = {**hp["reward"], "normalize_return": False}
+    makers = [partial(peer_env, {**base, "seed": cfg.seed + i, "reward": reward}) for i in range(n_envs)]
     if cfg.runtime.num_workers > 1 and n_envs > 1:
         venv: Any = SubprocVecEnv(makers, start_method="forkserver")
     else:
