@@ -43,7 +43,7 @@ def live(ray_local, tmp_path_factory):
         "api.request_timeout_s=5",
     )
     trainer = Trainer(cfg, log=lambda *_: None)
-    trainer._new_policy(0)
+    trainer.start_policy(0)
     stop, lock = threading.Event(), threading.Lock()
 
     def one_step() -> None:
@@ -98,13 +98,13 @@ def test_every_endpoint_while_training(live):
     )
     assert c.get(f"/v1/policies/{policies['policies'][-1]['policy_id']}").status_code == 200
     assert c.get("/v1/policies/999").status_code == 404
-    cur = c.get("/v1/assignment").json()
+    cur = c.get("/v1/assignments/latest").json()
     assert cur["last"] is not None and cur["last"]["policy_id"] in {p["policy_id"] for p in policies["policies"]}
     page = c.get("/v1/assignments", params={"limit": 1000}).json()
     assert page["total"] >= cur["num_assignments"] >= 2
     actor_history = _actor(live, "assignments", 0, page["total"])
     assert [r["episode_indices"] for r in page["items"]] == [r["episode_indices"] for r in actor_history]
-    assert "covers_env_steps " in c.get("/metrics").text
+    assert "covers_env_steps_total " in c.get("/metrics").text
 
 
 def _paused_after_a_recall(live):
@@ -126,7 +126,7 @@ def test_what_if_and_act_while_training(live):
     one = obs_batch_json(obs)[0]
     _paused_after_a_recall(live)
     try:
-        r = c.post("/v1/assign", json={"observations": obs_batch_json(obs)})
+        r = c.post("/v1/assignments/what-if", json={"observations": obs_batch_json(obs)})
         assert r.status_code == 200, r.text
         want = _actor(live, "what_if", obs)
         assert (r.json()["policy_id"], r.json()["decision"]) == (want["policy_id"], want["decision"])
@@ -151,7 +151,7 @@ def test_served_from_its_own_process(live):
     try:
         with httpx.Client(base_url=handle.url, timeout=60) as c:
             assert wait_until(lambda: c.get("/readyz").status_code == 200, 60)
-            cur = c.get("/v1/assignment").json()
+            cur = c.get("/v1/assignments/latest").json()
             assert cur["num_assignments"] >= 1 and cur["current_policy_id"] is not None
             assert c.get("/v1/policies").json()["num_policies"] >= 1
     finally:
@@ -186,21 +186,21 @@ def test_saved_checkpoint_serves_the_same_bank(live):
 
 @pytest.mark.slow
 def test_serve_cli_on_the_checkpoint(live):
-    """`covers-dist serve --checkpoint RUN_DIR` in its own process."""
+    """`covers-dist serve --run-dir RUN_DIR` in its own process."""
     live["stop"].set()
     live["thread"].join(120)
     with live["lock"]:
         live["trainer"].checkpoint()
     summary = _actor(live, "summary")
     cfg = replace(live["cfg"], api=replace(live["cfg"].api, port=0, token="cli-token"))
-    with ApiServerProcess(["--checkpoint", cfg.runtime.run_dir], cfg).start() as server:
+    with ApiServerProcess(["--run-dir", cfg.runtime.run_dir], cfg).start() as server:
         with httpx.Client(base_url=server.url, timeout=60, headers={"Authorization": "Bearer cli-token"}) as c:
             assert httpx.get(f"{server.url}/v1/policies").status_code == 401
             saved = c.get("/v1/policies").json()
             assert saved["num_policies"] == summary["num_policies"]
             obs = obs_batch_json(initial_obs(cfg, "reach", "f", [3]))
             assert c.post("/v1/act", json={"observation": obs[0], "policy_id": 0}).status_code == 200
-            assert c.post("/v1/assign", json={"observations": obs}).json()["num_observations"] == 1
+            assert c.post("/v1/assignments/what-if", json={"observations": obs}).json()["num_observations"] == 1
 
 
 def test_lost_actor_gives_503_not_500(live):
@@ -211,5 +211,5 @@ def test_lost_actor_gives_503_not_500(live):
     one = obs_batch_json(initial_obs(live["cfg"], "reach", "e", [1]))[0]
     r = c.post("/v1/act", json={"observation": one})
     assert r.status_code == 503 and "clustering actor" in r.json()["detail"]
-    assert c.get("/v1/assignment").status_code == 200  # the last snapshot is still served
+    assert c.get("/v1/assignments/latest").status_code == 200  # the last snapshot is still served
     assert wait_until(lambda: c.get("/readyz").status_code == 503, 30)

@@ -182,7 +182,7 @@ def test_covers_evaluates_each_transform_with_the_policy_the_bank_picks(tmp_path
         for _ in range(3):
             contender.train_once()
         contender.before_eval()
-        policies = sorted(contender.trainer.versions)
+        policies = sorted(contender.trainer.weights.versions)
         assert len(policies) > 1 and contender.env_steps == 3 * 16 * 25
         out = evaluator.evaluate(contender)
         chosen = out["policy"]
@@ -217,7 +217,7 @@ def test_covers_training_does_not_depend_on_when_it_is_evaluated(tmp_path, one_t
                     contender.before_eval()
                     evaluator.evaluate(contender)
             version, weights = contender.trainer.backend.call_learner(0, "weights")
-            runs.append((version, contender.trainer.versions[0], weights))
+            runs.append((version, contender.trainer.weights.versions[0], weights))
         finally:
             evaluator.close()
             contender.close()

@@ -187,7 +187,7 @@ def test_learner_killed_during_updates_ends_where_the_clean_run_ends(ray_local, 
     serial = _run(tiny_cfg(tmp_path / "s", "runtime.total_env_steps=1600"))
     cfg = tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false")
     trainer = Trainer(cfg, log=lambda *_: None)
-    trainer._new_policy(0)
+    trainer.start_policy(0)
     kills = 0
     while trainer.env_steps < cfg.runtime.total_env_steps:
         trainer.step()  # leaves this iteration's update running on its learner
@@ -197,8 +197,8 @@ def test_learner_killed_during_updates_ends_where_the_clean_run_ends(ray_local, 
             kills += 1
             _wait_for_new_pid(tmp_path / "r", "learner", learner["pid"])
     trainer.drain()
-    got = assignments(trainer), {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.versions)}
-    versions = {pid: trainer.backend.call_learner(pid, "weights")[0] for pid in sorted(trainer.versions)}
+    got = assignments(trainer), {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.weights.versions)}
+    versions = {pid: trainer.backend.call_learner(pid, "weights")[0] for pid in sorted(trainer.weights.versions)}
     trainer.close()
     assert kills == 2
     assert got[0] == serial[0]

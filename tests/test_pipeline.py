@@ -13,7 +13,7 @@ from test_runtime_serial import assignments, tiny_cfg
 def _run(cfg, resume=False):
     trainer = Trainer(cfg, resume=resume, log=lambda *_: None)
     trainer.run()
-    weights = {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.versions)}
+    weights = {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.weights.versions)}
     result = (assignments(trainer), weights)
     trainer.close()
     return result

@@ -30,7 +30,7 @@ def test_killed_rollout_worker_restarts_without_losing_or_doubling(ray_local, tm
     import ray
 
     trainer = Trainer(_ray_cfg(tmp_path, "runtime.total_env_steps=2000"), log=lambda *_: None)
-    trainer._new_policy(0)
+    trainer.start_policy(0)
     trainer.step()
     victim = trainer.backend.workers[0]
     old_pid = ray.get(victim.pid.remote())
@@ -52,7 +52,7 @@ def test_killed_clustering_actor_comes_back_with_the_same_bank(ray_local, tmp_pa
     import ray
 
     trainer = Trainer(_ray_cfg(tmp_path, "runtime.total_env_steps=4000"), log=lambda *_: None)
-    trainer._new_policy(0)
+    trainer.start_policy(0)
     for _ in range(3):
         trainer.step()
     before = trainer.backend.call_clustering("summary")

@@ -40,7 +40,7 @@ def test_serial_loop_runs_phases_and_writes_metrics(tmp_path):
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows] == [1, 2, 3, 4]
     assert rows[-1]["env_steps"] == 1600
-    for phase in ("sample", "assign", "update", "publish"):
+    for phase in ("sample", "assign", "update_submit", "update_wait", "record"):
         assert rows[-1][f"time/{phase}"] > 0
     episodes = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
     assert [e["episode_index"] for e in episodes] == list(range(32))

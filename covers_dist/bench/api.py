@@ -6,7 +6,7 @@ One run, on a local loopback-only Ray instance:
    CLI runs); the HTTP service runs in a process of its own (``start_api_server`` with the
    clustering actor, i.e. ``covers-dist serve --address``), as a training run starts it;
 2. alternating windows without and with API load, while training runs: the load comes from a
-   second process on 127.0.0.1 that sends ``GET /v1/assignment`` and ``POST /v1/act`` at bounded
+   second process on 127.0.0.1 that sends ``GET /v1/assignments/latest`` and ``POST /v1/act`` at bounded
    rates (a fixed number of concurrent clients, each paced to its share of the rate);
 3. training stops, and one more loaded window measures the service idle.
 
@@ -15,7 +15,7 @@ showing what the machine's scheduling alone adds to latency at that moment.
 
 It reports latency p50/p99 and requests/s per endpoint and scenario, and training env steps/s
 with and without the load (medians over windows; the ratio is measured in this one run).
-Targets: p99 <= 20 ms for GET /v1/assignment while training runs; env steps/s under load >= 0.9x.
+Targets: p99 <= 20 ms for GET /v1/assignments/latest while training runs; env steps/s under load >= 0.9x.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from ._api_load import process_cpu_s, run_load, server_ms, server_time, summariz
 
 TARGET_P99_MS = 20.0
 TARGET_RATIO = 0.9
-ASSIGNMENT, ACT, FLOOR = "GET /v1/assignment", "POST /v1/act", "GET /healthz"
+ASSIGNMENT, ACT, FLOOR = "GET /v1/assignments/latest", "POST /v1/act", "GET /healthz"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="config override, e.g. --set runtime.actor_nice=10 (repeatable)")
     p.add_argument("--window", type=float, default=20.0, help="seconds per measurement window (default: 20)")
     p.add_argument("--repeats", type=int, default=3, help="(no load, load) window pairs while training (default: 3)")
-    p.add_argument("--rate", type=float, default=20.0, help="GET /v1/assignment requests/s (default: 20)")
+    p.add_argument("--rate", type=float, default=20.0, help="GET /v1/assignments/latest requests/s (default: 20)")
     p.add_argument("--act-rate", type=float, default=5.0, help="POST /v1/act requests/s (default: 5)")
     p.add_argument("--concurrency", type=int, default=4, help="concurrent clients per endpoint (default: 4)")
     p.add_argument("--json", action="store_true", help="print one JSON object per line")
@@ -195,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     obs, _ = make_task(cfg.env, cfg.env.tasks[0], "r", seed=0).reset(seed=0)
     act_body = {"observation": observation_json(obs["image"], obs["proprio"]), "policy_id": 0}
     plan = [
-        {"name": ASSIGNMENT, "method": "GET", "path": "/v1/assignment", "rate": args.rate,
+        {"name": ASSIGNMENT, "method": "GET", "path": "/v1/assignments/latest", "rate": args.rate,
          "concurrency": args.concurrency},
         {"name": ACT, "method": "POST", "path": "/v1/act", "body": act_body, "rate": args.act_rate,
          "concurrency": max(1, args.concurrency // 2)},
@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
     handle = None
     try:
         _progress("starting training and the HTTP service (its own process)")
-        trainer._new_policy(0)
+        trainer.start_policy(0)
         training.thread.start()
         handle = start_api_server(cfg, trainer.backend.clustering)
         while len(training.marks) < 5:  # warm-up; policy 0's weights reach the clustering actor at iteration 2

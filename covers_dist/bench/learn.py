@@ -72,6 +72,8 @@ from typing import Any, Callable, Mapping, NoReturn, Sequence
 
 import numpy as np
 
+from ..commands._common import CommaList
+
 PROG = "covers-dist bench learn"
 CONTENDERS: tuple[str, ...] = ("covers", "cnn", "rllib-cnn", "rllib-equi", "rllib-default", "sb3")
 #: The peers (frameworks other than covers-dist's loop) and what each runs.
@@ -128,9 +130,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keep-runs", action="store_true",
                    help="keep each covers-dist contender's run directory as DIR/runs/NAME (needs --out): "
                         "its metrics, checkpoints and `covers-dist plot` figures")  # fmt: skip
-    p.add_argument("--merge", nargs="+", default=None, metavar="RESULT.json",
-                   help="train nothing: join the contenders of earlier result.json files of one task group "
-                        "(same task, group, threshold and evaluation) into one result, its ratios and curves")  # fmt: skip
+    p.add_argument("--merge", action=CommaList, default=None, metavar="RESULT.json",
+                   help="train nothing: join the contenders of earlier result.json files (comma-separated) of one "
+                        "task group (same task, group, threshold and evaluation) into one result, its ratios and "
+                        "curves")  # fmt: skip
     p.set_defaults(func=run)
 
 
@@ -183,8 +186,7 @@ class GroupEvaluation:
     def __init__(self, cfg: Any, task: str, elements: Sequence[str], episodes: int, seed: int) -> None:
         from ..evaluation import LocalExecutors
         from ..evaluation.protocol import EvalPair
-        from ..runtime.backends import EVAL_WORKER_INDEX
-        from ..runtime.rollout import RolloutWorker
+        from ..runtime.rollout import EVAL_WORKER_INDEX, RolloutWorker
 
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -275,7 +277,7 @@ class _CoversContender:
         self.trainer = Trainer(cfg, log=lambda *_: None)
         # a kept run logs as `covers-dist train` does (metrics.jsonl, episodes.jsonl; a checkpoint at the end)
         self.writer = MetricsWriter(self.trainer.run_dir, tensorboard=False) if keep else None
-        self.trainer._new_policy(0)  # as Trainer.run starts: policy 0's learner and weights
+        self.trainer.start_policy(0)  # as Trainer.run starts: policy 0's learner and weights
         backend = self.trainer.backend
         if getattr(backend, "name", "") == "ray":  # wait until the rollout actors are up: start-up, not training
             backend.ray.get([w.stats.remote() for w in backend.workers])
@@ -314,7 +316,7 @@ class _CoversContender:
         return {"policy_id": pid, "decision": record.get("decision"), "nearest_distance": record.get("nearest_distance")}
 
     def extra(self) -> dict[str, Any]:
-        return {"num_policies": len(self.trainer.versions)}
+        return {"num_policies": len(self.trainer.weights.versions)}
 
     def hyperparameters(self) -> dict[str, Any]:
         from .rllib_peer import ppo_settings

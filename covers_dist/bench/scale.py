@@ -5,15 +5,15 @@ a head plus worker nodes, ``--cpus-per-node`` CPUs each, every process on 127.0.
 dir), places one rollout worker per node, and measures in one run, for 1..``--nodes`` nodes:
 
 * the sequential loop (``runtime.pipeline=false``): env steps/s, and mean seconds per iteration of
-  each phase (sample, assign, update, publish), the terms of the time model below;
+  each phase (sample, assign, update_submit, update_wait, record), the terms of the time model below;
 * the pipelined loop: env steps/s end to end.
 
 Time model (per iteration of ``S`` env steps, ``W`` workers at ``r`` steps/s each, an update of
-``U`` seconds): sequential ``T = S / (W r) + assign + U + publish``; pipelined
-``T = max(S / (W r), U) + assign + publish``. ``--project-workers`` and
+``U`` seconds): sequential ``T = S / (W r) + assign + U + record``; pipelined
+``T = max(S / (W r), U) + assign + record``. ``--project-workers`` and
 ``--project-update-samples-per-s`` (a learner's PPO throughput, e.g. a GPU's; default: the
 update throughput measured here) give the projected steps/s of a larger cluster from the measured
-per-worker rate and the measured assign and publish times.
+per-worker rate and the measured assign and record times.
 
 Nodes on one machine share its cores: with 2 cores, 2 one-CPU nodes measure Ray's placement,
 transfer and scheduling across nodes, not more compute. The projection states its inputs.
@@ -75,11 +75,11 @@ def project(measured: dict[str, float], steps_per_iter: float, workers: int, upd
     per_worker = measured["sample_steps_per_s"] / measured["workers"]
     sample_s = steps_per_iter / (workers * per_worker)
     update_s = steps_per_iter * epochs / update_samples_per_s
-    fixed = measured.get("phase_assign_s", 0.0) + measured.get("phase_publish_s", 0.0)
+    fixed = measured.get("phase_assign_s", 0.0) + measured.get("phase_record_s", 0.0)
     seq, pipe = sample_s + update_s + fixed, max(sample_s, update_s) + fixed
     return {
         "workers": workers, "per_worker_steps_per_s": round(per_worker, 1), "sample_s": round(sample_s, 3),
-        "update_s": round(update_s, 3), "assign_publish_s": round(fixed, 3),
+        "update_s": round(update_s, 3), "assign_record_s": round(fixed, 3),
         "sequential_steps_per_s": round(steps_per_iter / seq, 1), "pipelined_steps_per_s": round(steps_per_iter / pipe, 1),
         "bound": "update" if update_s > sample_s else "sampling",
     }  # fmt: skip
@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     base, top = out["1n_sequential"], out[f"{args.nodes}n_sequential"]
     out["sampling_scaling"] = round(top["sample_steps_per_s"] / base["sample_steps_per_s"], 3)
     out["end_to_end_scaling"] = round(out[f"{args.nodes}n_pipelined"]["env_steps_per_s"] / out["1n_pipelined"]["env_steps_per_s"], 3)
-    measured_update = steps_per_iter * cfg.ppo.epochs / max(top["phase_update_s"], 1e-9)
+    measured_update = steps_per_iter * cfg.ppo.epochs / max(top["update_s_per_iter"], 1e-9)
     rate = args.project_update_samples_per_s or measured_update
     out["measured_update_samples_per_s"] = round(measured_update, 1)
     out["projection"] = project(top, steps_per_iter, args.project_workers, rate, cfg.ppo.epochs)

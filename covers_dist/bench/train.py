@@ -110,7 +110,7 @@ def _covers(
     trainer = Trainer(cfg, log=lambda *_: None)
     try:
         with PeakMemory(str(Path(session_dir).parent)) as mem:
-            trainer._new_policy(0)
+            trainer.start_policy(0)
             for _ in range(warmup):
                 trainer.step()
             trainer.drain()  # the window holds exactly its own iterations' sampling and updates
@@ -133,7 +133,8 @@ def _covers(
         "peak_rss_gib": mem.peak / GIB,
         "processes": mem.processes,
         "env_steps": steps,
-        "update_s_per_iter": phases.get("update", 0.0) / iters,
+        # the update's own time beside (pipelined) or after (sequential) the sampling
+        "update_s_per_iter": (phases.get("update_submit", 0.0) + phases.get("update_wait", 0.0)) / iters,
         **{f"phase_{name}_s": secs / iters for name, secs in phases.items()},
     }
 

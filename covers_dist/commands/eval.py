@@ -14,10 +14,8 @@ the episodes on N Ray actors of a local, loopback-only Ray instance.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
-from pathlib import Path
 from typing import Any
 
 #: Episodes per (task, g), policy and mode when ``--episodes`` is not given.
@@ -53,85 +51,36 @@ def _csv(value: str | None, name: str) -> list[str] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..config import ConfigError, config_from_dict, config_to_dict
-    from ..envs.stream import TaskStream
-    from ..evaluation import append_pass, continual_metrics, read_passes
+    from ..config import ConfigError
     from ..evaluation.report import pairs_table
     from ..runtime.checkpoint import CheckpointError
-    from ..runtime.evaluation import evaluation_pass, group_progress
-    from ..runtime.saved_run import load_saved_run
+    from ..runtime.evaluation import evaluate_saved_run
 
-    if args.episodes is not None and args.episodes < 1:
-        raise SystemExit(f"covers-dist eval: --episodes must be >= 1, got {args.episodes}")
-    if args.workers < 0:
-        raise SystemExit(f"covers-dist eval: --workers must be >= 0, got {args.workers}")
     try:
-        saved = load_saved_run(args.run_dir, log=lambda m: print(m, file=sys.stderr))
-    except (FileNotFoundError, CheckpointError) as e:
-        raise SystemExit(f"covers-dist eval: {e}") from None
-    cfg = saved.cfg
-    tasks = _csv(args.tasks, "tasks")
-    if tasks is not None:
-        unknown = [t for t in tasks if t not in cfg.env.tasks]
-        if unknown:
-            raise SystemExit(
-                f"covers-dist eval: task(s) {unknown} were never part of this run; it trained on {list(cfg.env.tasks)}"
-            )
-    data = config_to_dict(cfg)
-    for key, value in (("modes", _csv(args.modes, "modes")), ("selections", _csv(args.selections, "selections"))):
-        if value is not None:
-            data["eval"][key] = value
-    if args.workers:
-        data["eval"]["workers"] = args.workers
-        data["eval"]["num_cpus"] = 1.0
-    try:
-        cfg = config_from_dict(data)
-    except ConfigError as e:
-        raise SystemExit(f"covers-dist eval: {e}") from None
-    stream = TaskStream.from_config(cfg.env, cfg.seed)
-    episodes_done = int(saved.driver.get("next_episode", 0))
-    groups = saved.driver.get("groups") or group_progress(stream, _episode_rows(saved.run_dir, episodes_done))
-    info = {
-        "iteration": int(saved.driver.get("iteration", 0)),
-        "env_steps": int(saved.driver.get("env_steps", 0)),
-        "source": f"checkpoint {saved.checkpoint.name}",
-        "groups": groups,
-    }
-    service = saved.service
-    executors, stop = _executors(cfg, args.workers)
-    try:
-        ev = evaluation_pass(
-            cfg,
-            executors,
-            stream,
-            episodes_done,
-            lambda obs, gids: service.what_if(obs, gids),
-            service.metrics().get("confusion", {}),
-            saved.weights_map,
-            info,
-            tasks=tasks,
+        result = evaluate_saved_run(
+            args.run_dir,
             episodes=args.episodes,
+            tasks=_csv(args.tasks, "tasks"),
+            modes=_csv(args.modes, "modes"),
+            selections=_csv(args.selections, "selections"),
+            workers=args.workers,
+            write=not args.no_write,
             log=lambda m: print(m, file=sys.stderr),
         )
-    finally:
-        executors.close()
-        stop()
-    passes = read_passes(saved.run_dir)
-    if not args.no_write:
-        append_pass(saved.run_dir, ev)
-    history = [p for p in passes if p.get("iteration", -1) < ev["iteration"]] + [ev]
-    cl = continual_metrics(history)
+    except (ValueError, ConfigError, FileNotFoundError, CheckpointError) as e:
+        raise SystemExit(f"covers-dist eval: {e}") from None
+    ev, cl = result.pass_, result.metrics
     if args.json:
         print(json.dumps({"pass": ev, "metrics": cl}, default=float))
         return 0
-    print(f"# {saved.run_dir} at iteration {ev['iteration']} ({ev['env_steps']} env steps, {saved.checkpoint.name})")
+    print(f"# {result.run_dir} at iteration {ev['iteration']} ({ev['env_steps']} env steps, {result.checkpoint})")
     print(f"{ev['eval_episodes']} evaluation episodes from {ev['distinct_initial_states']} distinct initial states "
           f"in {ev['time_s']['total']:.1f} s\n")  # fmt: skip
     print(pairs_table(ev))
     print()
     print(_summary(cl))
-    if not args.no_write:
-        print(f"\nappended to {Path(saved.run_dir) / 'eval.jsonl'}")
+    if result.written is not None:
+        print(f"\nappended to {result.written}")
     return 0
 
 
@@ -163,31 +112,3 @@ def _interval(counts: dict[str, Any] | None) -> str:
         return "n/a"
     lo, hi = counts["ci95"]
     return f"{lo:.2f}-{hi:.2f} ({counts['successes']}/{counts['n']})"
-
-
-def _episode_rows(run_dir: Path, episodes_done: int) -> list[dict[str, Any]]:
-    """Rows of episodes.jsonl and its rotated segments before ``episodes_done`` (newest per index);
-    [] if there are none."""
-    from ..runtime.logfiles import read_jsonl_segments
-
-    rows: dict[int, dict[str, Any]] = {}
-    for row in read_jsonl_segments(run_dir, "episodes.jsonl", strict=False):
-        if int(row.get("episode_index", -1)) in range(episodes_done):
-            rows[int(row["episode_index"])] = row
-    return [rows[i] for i in sorted(rows)]
-
-
-def _executors(cfg: Any, workers: int) -> tuple[Any, Any]:
-    """(executors, stop function): one worker in this process, or Ray actors on a local instance."""
-    if workers == 0:
-        from ..evaluation import LocalExecutors
-        from ..runtime.backends import EVAL_WORKER_INDEX
-        from ..runtime.rollout import RolloutWorker
-
-        return LocalExecutors([RolloutWorker(cfg, EVAL_WORKER_INDEX)]), lambda: None
-    from ..runtime.backends import RayEvalExecutors
-    from ..runtime.ray_setup import init_ray, shutdown_ray
-
-    init_ray(max(cfg.runtime.num_cpus, workers), cfg.runtime.ray_address)
-    local = dataclasses.replace(cfg, runtime=dataclasses.replace(cfg.runtime, serial=False))
-    return RayEvalExecutors(local), shutdown_ray

@@ -19,11 +19,10 @@ from typing import Any
 import ray
 
 from ..config import Config
-from .backends import EVAL_WORKER_INDEX, split_first_frames
 from .clustering_service import ClusteringService
 from .learner import PolicyLearner
 from .processes import announce
-from .rollout import RolloutWorker
+from .rollout import EVAL_WORKER_INDEX, RolloutWorker, split_first_frames
 
 __all__ = ["rollout_actor", "eval_actor", "clustering_actor", "learner_actor", "clustering_actor_name"]
 

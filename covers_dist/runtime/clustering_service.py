@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..clustering import PolicyBank
+from ..clustering import PolicyBank, load_bank, save_bank
 from ..clustering.features import SharedFeatures
 from ..config import Config, config_to_dict
 from ..envs import suite_layout
@@ -237,7 +237,7 @@ class ClusteringService:
         """
         with self._lock:
             path = Path(directory)
-            self.bank.save(str(path))
+            save_bank(self.bank, path)
             tmp = path / ".service.json.tmp"
             tmp.write_text(json.dumps(self._service_state()))
             os.replace(tmp, path / "service.json")
@@ -246,7 +246,7 @@ class ClusteringService:
         """Restore bank + counters saved by :meth:`save` (and optionally policy weights)."""
         with self._lock:
             path = Path(directory)
-            self.bank = PolicyBank.load(str(path), feature_fn=self._feature_fn())
+            self.bank = load_bank(path, feature_fn=self._feature_fn())
             if self.cfg.runtime.method in SINGLE_POLICY_METHODS:
                 self.bank.max_policies = 1
             service = path / "service.json"

@@ -10,9 +10,11 @@ pass runs; the driver collects the finished pass at its next iteration. Every pa
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 import traceback
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -21,7 +23,14 @@ from ..envs.stream import TaskStream
 from ..evaluation import append_pass, continual_metrics, eval_pairs, metric_row, read_passes, run_evaluation
 from ..evaluation.protocol import oracle_policies
 
-__all__ = ["evaluation_pass", "fresh_policy_weights", "PeriodicEvaluation", "group_progress"]
+__all__ = [
+    "evaluation_pass",
+    "evaluate_saved_run",
+    "SavedRunEvaluation",
+    "fresh_policy_weights",
+    "PeriodicEvaluation",
+    "group_progress",
+]
 
 
 def group_progress(stream: TaskStream, episode_rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -115,6 +124,36 @@ class PeriodicEvaluation:
     def due(self, iteration: int) -> bool:
         return self.enabled and iteration % self.cfg.eval.every_iterations == 0 and iteration != self.last_iteration
 
+    def start_training_pass(
+        self,
+        backend: Any,
+        stream: TaskStream,
+        episodes_done: int,
+        weights_map: dict[int, tuple[int, Any]],
+        info: dict[str, Any],
+    ) -> None:
+        """Start a pass of a training run at iteration ``info["iteration"]``: the policies of
+        ``weights_map`` act, chosen by the bank's what-if on each episode's first frames, on
+        ``backend``'s evaluation executors; training's torch RNG is left as it was."""
+        import torch
+
+        confusion = backend.call_clustering("metrics").get("confusion", {})
+        with torch.random.fork_rng(devices=[]):  # building the evaluation worker's model draws random numbers
+            executors = backend.eval_executors()
+
+        def choose(obs: dict[str, Any], groups: list[int]) -> dict[str, Any]:
+            # only the policies of this pass's weights: on Ray, training goes on meanwhile and the bank
+            # may hold a policy whose weights are not published yet
+            return backend.call_clustering("what_if", obs, groups, sorted(weights_map))
+
+        def make_pass() -> dict[str, Any]:
+            return evaluation_pass(
+                self.cfg, executors, stream, episodes_done, choose, confusion, weights_map, info, log=self.log
+            )
+
+        with torch.random.fork_rng(devices=[]):  # a serial pass runs here: training's torch RNG stays as it was
+            self.start(int(info["iteration"]), make_pass)
+
     def start(self, iteration: int, make_pass: Callable[[], dict[str, Any]]) -> None:
         """Run ``make_pass`` now (serial) or in a background thread (Ray); one pass at a time."""
         if self.running:
@@ -163,3 +202,120 @@ class PeriodicEvaluation:
 
 def _fmt(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.2f}"
+
+
+@dataclass(frozen=True)
+class SavedRunEvaluation:
+    """One evaluation pass of a saved run: the pass (a line of eval.jsonl), the continual-learning
+    metrics over the run's passes up to it, and where it was written (None with ``write=False``)."""
+
+    run_dir: Path
+    checkpoint: str
+    pass_: dict[str, Any]
+    metrics: dict[str, Any]
+    written: Path | None
+
+
+def evaluate_saved_run(
+    run_dir: str | Path,
+    *,
+    episodes: int,
+    tasks: list[str] | None = None,
+    modes: list[str] | None = None,
+    selections: list[str] | None = None,
+    workers: int = 0,
+    write: bool = True,
+    log: Callable[[str], None] = print,
+) -> SavedRunEvaluation:
+    """Evaluate the newest valid checkpoint of ``run_dir`` on every (task, g) of ``tasks`` (default:
+    every task of the run), read-only, with ``episodes`` episodes per pair, policy and mode.
+
+    ``modes`` / ``selections`` replace the run's ``eval.modes`` / ``eval.selections``; ``workers``
+    > 0 runs the episodes on that many Ray actors of a local, loopback-only Ray instance (0: in this
+    process). The pass is appended to ``RUN_DIR/eval.jsonl`` unless ``write`` is False.
+    Raises ``ValueError`` (a bad argument; ``ConfigError`` is one), ``FileNotFoundError`` or
+    ``CheckpointError`` (no run, no valid checkpoint), each naming the problem.
+    """
+    from ..config import config_from_dict, config_to_dict
+    from .saved_run import load_saved_run
+
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if workers < 0:
+        raise ValueError(f"workers must be >= 0, got {workers}")
+    saved = load_saved_run(run_dir, log=log)
+    cfg = saved.cfg
+    if tasks is not None:
+        unknown = [t for t in tasks if t not in cfg.env.tasks]
+        if unknown:
+            raise ValueError(f"task(s) {unknown} were never part of this run; it trained on {list(cfg.env.tasks)}")
+    data = config_to_dict(cfg)
+    for key, value in (("modes", modes), ("selections", selections)):
+        if value is not None:
+            data["eval"][key] = list(value)
+    if workers:
+        data["eval"]["workers"] = workers
+        data["eval"]["num_cpus"] = 1.0
+    cfg = config_from_dict(data)  # checks the modes and selections
+    stream = TaskStream.from_config(cfg.env, cfg.seed)
+    episodes_done = int(saved.driver.get("next_episode", 0))
+    groups = saved.driver.get("groups") or group_progress(stream, _episode_rows(saved.run_dir, episodes_done))
+    info = {
+        "iteration": int(saved.driver.get("iteration", 0)),
+        "env_steps": int(saved.driver.get("env_steps", 0)),
+        "source": f"checkpoint {saved.checkpoint.name}",
+        "groups": groups,
+    }
+    service = saved.service
+    executors, stop = _saved_run_executors(cfg, workers)
+    try:
+        ev = evaluation_pass(
+            cfg,
+            executors,
+            stream,
+            episodes_done,
+            lambda obs, gids: service.what_if(obs, gids),
+            service.metrics().get("confusion", {}),
+            saved.weights_map,
+            info,
+            tasks=tasks,
+            episodes=episodes,
+            log=log,
+        )
+    finally:
+        executors.close()
+        stop()
+    passes = read_passes(saved.run_dir)
+    written = None
+    if write:
+        append_pass(saved.run_dir, ev)
+        written = Path(saved.run_dir) / "eval.jsonl"
+    history = [p for p in passes if p.get("iteration", -1) < ev["iteration"]] + [ev]
+    return SavedRunEvaluation(Path(saved.run_dir), saved.checkpoint.name, ev, continual_metrics(history), written)
+
+
+def _episode_rows(run_dir: Path, episodes_done: int) -> list[dict[str, Any]]:
+    """Rows of episodes.jsonl and its rotated segments before ``episodes_done`` (newest per index);
+    [] if there are none."""
+    from .logfiles import read_jsonl_segments
+
+    rows: dict[int, dict[str, Any]] = {}
+    for row in read_jsonl_segments(run_dir, "episodes.jsonl", strict=False):
+        if int(row.get("episode_index", -1)) in range(episodes_done):
+            rows[int(row["episode_index"])] = row
+    return [rows[i] for i in sorted(rows)]
+
+
+def _saved_run_executors(cfg: Config, workers: int) -> tuple[Any, Callable[[], None]]:
+    """(executors, stop function): one worker in this process, or Ray actors on a local instance."""
+    if workers == 0:
+        from ..evaluation import LocalExecutors
+        from .rollout import EVAL_WORKER_INDEX, RolloutWorker
+
+        return LocalExecutors([RolloutWorker(cfg, EVAL_WORKER_INDEX)]), lambda: None
+    from .backends import RayEvalExecutors
+    from .ray_setup import init_ray, shutdown_ray
+
+    init_ray(max(cfg.runtime.num_cpus, workers), cfg.runtime.ray_address)
+    local = dataclasses.replace(cfg, runtime=dataclasses.replace(cfg.runtime, serial=False))
+    return RayEvalExecutors(local), shutdown_ray

@@ -24,7 +24,16 @@ from ..ppo.rollout import run_lockstep
 from ..symmetry import GroupElement
 from .ray_setup import resolve_weights
 
-__all__ = ["EpisodeSpec", "RolloutWorker", "episode_seed", "training_seeds"]
+__all__ = [
+    "EVAL_WORKER_INDEX",
+    "EpisodeSpec",
+    "RolloutWorker",
+    "episode_seed",
+    "merge_first_frames",
+    "split_first_frames",
+    "summarize_episode",
+    "training_seeds",
+]
 
 
 @dataclass(frozen=True)
@@ -49,6 +58,39 @@ def _eval_specs(pair: EvalPair, n: int) -> list[EpisodeSpec]:
 def episode_seed(base_seed: int, episode_index: int) -> int:
     """The seed of an episode: a pure function of the run seed and the episode's global index."""
     return int(np.random.SeedSequence([base_seed, episode_index]).generate_state(1)[0])
+
+
+#: Worker index of evaluation workers (only used in their names and stats).
+EVAL_WORKER_INDEX = 1000
+
+
+def summarize_episode(ep: dict[str, Any]) -> dict[str, Any]:
+    """The per-episode row the driver logs (no frames)."""
+    return {
+        "episode_index": int(ep["episode_index"]),
+        "task": ep["task"],
+        "g": ep["g"],
+        "group_id": int(ep["group_id"]),
+        "policy_id": int(ep["policy_id"]),
+        "return": float(ep["reward"].sum()),
+        "success": float(ep["success"].max()) if len(ep["success"]) else 0.0,
+        "length": int(len(ep["reward"])),
+    }
+
+
+def split_first_frames(episodes: list[dict[str, Any]], k: int) -> tuple[list[dict], list[dict]]:
+    """(first-k observations of each episode, summaries): all that leaves a worker for the driver."""
+    firsts = [{"image": ep["image"][:k].copy(), "proprio": ep["proprio"][:k].copy()} for ep in episodes]
+    return firsts, [summarize_episode(ep) for ep in episodes]
+
+
+def merge_first_frames(parts: list[tuple[dict[str, np.ndarray], list[EpisodeSpec]]]) -> dict[str, np.ndarray]:
+    """Per-worker first observations merged into one batch in episode order."""
+    rows = sorted(
+        ((s.episode_index, f["image"][i], f["proprio"][i]) for f, specs in parts for i, s in enumerate(specs)),
+        key=lambda r: r[0],
+    )
+    return {"image": np.stack([r[1] for r in rows]), "proprio": np.stack([r[2] for r in rows])}
 
 
 class RolloutWorker:

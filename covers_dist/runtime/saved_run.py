@@ -1,6 +1,6 @@
 """A saved run, loaded read-only: its config, newest valid checkpoint, bank and policy weights.
 
-Used by ``covers-dist eval`` / ``report`` and by ``covers-dist serve --checkpoint``. Nothing here
+Used by ``covers-dist eval`` / ``report`` and by ``covers-dist serve --run-dir``. Nothing here
 writes into the run directory.
 """
 

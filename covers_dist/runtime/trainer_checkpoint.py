@@ -1,0 +1,117 @@
+"""Saving a training run's state into a checkpoint and restoring it (the layout is
+:mod:`covers_dist.runtime.checkpoint`'s).
+
+A checkpoint holds the driver's counters, stream position and RNG states (``driver.json``), the
+config, the policy bank (the clustering service saves it) and every learner's state. An update
+still in flight (pipelined loop) is waited for but not published: the learner's state holds it,
+and the weights workers sample with until it is published are saved beside it, so a resumed run
+goes on exactly as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from ..config import config_to_dict
+from .checkpoint import write_checkpoint
+from .learner import LIVE_DIR, live_state_path
+from .ray_setup import resolve_weights
+from .saved_run import probe_mismatch
+from .tally import loss_fields
+from .weights import CompletedUpdate
+
+__all__ = ["save_trainer", "restore_trainer", "drop_live_states"]
+
+
+def _driver_state(trainer: Any) -> dict[str, Any]:
+    return {
+        "iteration": trainer.iteration,
+        "next_episode": trainer.next_episode,
+        "env_steps": trainer.env_steps,
+        "current_policy": trainer.current_policy,
+        "weight_version": trainer.weights.version,
+        "policies": sorted(trainer.weights.versions),
+        "groups": trainer.tally.groups,
+        "acted_other": trainer.tally.acted_other,
+        "stream": trainer.stream.state_dict(),
+        "numpy_rng": np.random.get_state()[1].tolist(),
+        "network_probe": trainer.backend.network_probe().tolist(),
+        "torch_rng": torch.get_rng_state().tolist(),
+    }
+
+
+def save_trainer(trainer: Any) -> Path:
+    """Write a checkpoint of ``trainer`` (a :class:`~covers_dist.runtime.driver.Trainer`); its path."""
+    weights, backend = trainer.weights, trainer.backend
+    pending = weights.complete_pending()
+
+    def write(tmp: Path) -> None:
+        state = _driver_state(trainer)
+        if pending is not None:
+            policy_id, stats, _ = pending
+            state["pending_update"] = {"policy_id": policy_id, "stats": loss_fields(stats)}
+        (tmp / "driver.json").write_text(json.dumps(state))
+        (tmp / "config.yaml").write_text(yaml.safe_dump(config_to_dict(trainer.cfg), sort_keys=False))
+        backend.call_clustering("save", str(tmp / "bank"))
+        (tmp / "learners").mkdir()
+        for pid in sorted(weights.versions):
+            torch.save(backend.call_learner(pid, "state_dict"), tmp / "learners" / f"policy-{pid}.pt")
+        if pending is not None:
+            sampling = resolve_weights(weights.handles[pending[0]])
+            torch.save(sampling, tmp / "learners" / f"sampling-{pending[0]}.pt")
+
+    return write_checkpoint(trainer.run_dir, trainer.iteration, write)
+
+
+def restore_trainer(trainer: Any, path: Path) -> None:
+    """Load the checkpoint at ``path`` into a freshly built ``trainer``."""
+    weights, backend = trainer.weights, trainer.backend
+    state = json.loads((path / "driver.json").read_text())
+    trainer.iteration = state["iteration"]
+    trainer.next_episode = state["next_episode"]
+    trainer.env_steps = state["env_steps"]
+    trainer.current_policy = state["current_policy"]
+    weights.version = state["weight_version"]
+    trainer.tally.groups.update(state.get("groups", {}))
+    trainer.tally.acted_other = int(state.get("acted_other", 0))
+    trainer.stream.load_state_dict(state["stream"])
+    warning = probe_mismatch(state.get("network_probe"), backend.network_probe(), trainer.cfg)
+    if warning:
+        trainer.log(f"warning: {path}: {warning}")
+    backend.call_clustering("load", str(path / "bank"))
+    pending = state.get("pending_update")
+    drop_live_states(trainer.run_dir, keep=state["policies"])  # policies created after this checkpoint
+    for pid in state["policies"]:
+        backend.ensure_learner(pid)
+        learner_state = torch.load(path / "learners" / f"policy-{pid}.pt", weights_only=False)
+        backend.call_learner(pid, "load_state_dict", learner_state)
+        weights.learner_versions[pid], newest = backend.call_learner(pid, "weights")
+        if pending is not None and pending["policy_id"] == pid:
+            # the update in flight when the checkpoint was written: workers keep sampling with
+            # the weights before it until the next iteration publishes it, as they would have
+            sampling = torch.load(path / "learners" / f"sampling-{pid}.pt", weights_only=False)
+            weights.publish(pid, sampling)
+            stats = {k.split("/", 1)[1]: v for k, v in pending["stats"].items()}
+            weights.pending = (pid, CompletedUpdate(stats, backend.publish(newest)))
+        else:
+            weights.publish(pid, newest)
+    weights.prepare_next_learner()
+    trainer.evaluation.rewind(trainer.iteration)
+    trainer.log(f"resumed from {path} (iteration {trainer.iteration}, {trainer.env_steps} env steps)")
+
+
+def drop_live_states(run_dir: Path, keep: list[int] | None = None) -> None:
+    """Remove the learners' live states (:mod:`.learner`) of policies not in ``keep`` (all if None)."""
+    live = run_dir / LIVE_DIR
+    if not live.is_dir():
+        return
+    kept = {live_state_path(run_dir, pid).name for pid in keep or []}
+    for f in live.iterdir():
+        if f.name not in kept:
+            f.unlink(missing_ok=True)
