@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 
-from covers_dist.clustering import AssignmentRecord, CheckpointError, PolicyBank
+from covers_dist.clustering import AssignmentRecord, CheckpointError, PolicyBank, load_bank, save_bank
 from covers_dist.clustering import calibration
 from covers_dist.clustering.calibration import NullDistance, max_draws, permutation_test
 from covers_dist.clustering.distances import get_distance
@@ -205,31 +205,31 @@ def test_saved_and_loaded_calibrated_bank_decides_the_same(tmp_path):
     stream = Stream()
     for g in [0, 0, 1, 0, 1]:
         bank.assign(stream.batch(g), group_ids=g)
-    bank.save(tmp_path / "bank")
-    loaded = PolicyBank.load(tmp_path / "bank", feats, config=cfg)
+    save_bank(bank, tmp_path / "bank")
+    loaded = load_bank(tmp_path / "bank", feats, config=cfg)
     assert [stable(r) for r in loaded.history] == [stable(r) for r in bank.history]
     for g in [1, 0, 0]:
         obs = stream.batch(g)
         assert stable(loaded.assign(obs, group_ids=g)) == stable(bank.assign(obs, group_ids=g))
     with pytest.raises(CheckpointError, match="rule"):
-        PolicyBank.load(tmp_path / "bank", feats, config=config_from_dict({"seed": 4}))
+        load_bank(tmp_path / "bank", feats, config=config_from_dict({"seed": 4}))
     other = config_from_dict({"clustering": {"rule": "calibrated", "calibration_samples": 20}, "seed": 4})
     with pytest.raises(CheckpointError, match="false_split_rate"):
-        PolicyBank.load(tmp_path / "bank", feats, config=other)
+        load_bank(tmp_path / "bank", feats, config=other)
 
 
 def test_bank_saved_without_rule_settings_still_loads(tmp_path):
     feats = DriftingFeatures()
     bank = PolicyBank(feats)
     run_stream(bank, feats, [0, 0, 1])
-    bank.save(tmp_path / "b")
+    save_bank(bank, tmp_path / "b")
     path = tmp_path / "b" / "bank.json"
     doc = json.loads(path.read_text())
     for k in ("rule", "false_split_rate", "calibration_samples"):
         del doc["state"]["settings"][k]
     del doc["state"]["calibration_rng"]
     path.write_text(json.dumps(doc))
-    loaded = PolicyBank.load(tmp_path / "b", feats, config=config_from_dict({}))
+    loaded = load_bank(tmp_path / "b", feats, config=config_from_dict({}))
     assert loaded.rule == "threshold" and len(loaded.history) == 3
     assert [stable(r) for r in loaded.history] == [stable(r) for r in bank.history]
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from covers_dist.clustering import PolicyBank, normalize_pair, wasserstein1
-from covers_dist.clustering.toy_stream import encoder_features, run_toy_stream, toy_initial_obs, toy_stream
+from covers_dist.bench.toy_stream import encoder_features, run_toy_stream, toy_initial_obs, toy_stream
 from covers_dist.config import DEFAULT_THRESHOLDS, ClusteringConfig, NetworkConfig
 from covers_dist.envs.toy import TOY_TASKS
 from covers_dist.symmetry import D4_ELEMENTS

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from covers_dist.clustering import CheckpointError, PolicyBank, SharedFeatures, load_bank
+from covers_dist.clustering import CheckpointError, PolicyBank, SharedFeatures, load_bank, save_bank
 from covers_dist.clustering.persistence import STATE_FILE
 from covers_dist.config import load_config
 
@@ -49,8 +49,8 @@ def _state(bank: PolicyBank, clocks: bool = True) -> str:
 def test_round_trip_is_exact_and_continues_identically(tmp_path, replacement):
     rng = np.random.default_rng(0)
     bank = _filled_bank(rng, replacement=replacement)
-    bank.save(tmp_path / "bank")
-    restored = PolicyBank.load(tmp_path / "bank", FEATURES)
+    save_bank(bank, tmp_path / "bank")
+    restored = load_bank(tmp_path / "bank", FEATURES)
     assert _state(restored) == _state(bank)
     for pid in bank.policy_ids:
         a, b = bank.entries[pid].buffer.observations(), restored.entries[pid].buffer.observations()
@@ -72,7 +72,7 @@ def test_round_trip_is_exact_and_continues_identically(tmp_path, replacement):
 def test_ground_truth_bank_round_trip(tmp_path):
     rng = np.random.default_rng(1)
     bank = _filled_bank(rng, mode="ground_truth")
-    bank.save(tmp_path)
+    save_bank(bank, tmp_path)
     restored = load_bank(tmp_path)
     assert restored.group_policy == bank.group_policy and _state(restored) == _state(bank)
 
@@ -80,19 +80,19 @@ def test_ground_truth_bank_round_trip(tmp_path):
 def test_saving_again_replaces_and_cleans_up(tmp_path):
     rng = np.random.default_rng(2)
     bank = _filled_bank(rng)
-    bank.save(tmp_path)
+    save_bank(bank, tmp_path)
     bank.assign(_obs(rng, 30.0), group_ids=3)
-    bank.save(tmp_path)
+    save_bank(bank, tmp_path)
     assert len([p for p in tmp_path.iterdir() if p.suffix == ".npz"]) == 1
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
-    assert len(PolicyBank.load(tmp_path)) == 4
+    assert len(load_bank(tmp_path)) == 4
 
 
 def test_failed_save_leaves_previous_checkpoint_usable(tmp_path, monkeypatch):
     rng = np.random.default_rng(3)
     bank = _filled_bank(rng)
-    bank.save(tmp_path)
-    before = _state(PolicyBank.load(tmp_path))
+    save_bank(bank, tmp_path)
+    before = _state(load_bank(tmp_path))
     bank.assign(_obs(rng, 30.0), group_ids=3)
     real_replace = os.replace
 
@@ -103,9 +103,9 @@ def test_failed_save_leaves_previous_checkpoint_usable(tmp_path, monkeypatch):
 
     monkeypatch.setattr(os, "replace", crash_on_commit)
     with pytest.raises(OSError, match="disk full"):
-        bank.save(tmp_path)
+        save_bank(bank, tmp_path)
     monkeypatch.setattr(os, "replace", real_replace)
-    assert _state(PolicyBank.load(tmp_path)) == before
+    assert _state(load_bank(tmp_path)) == before
     assert len([p for p in tmp_path.iterdir() if p.suffix == ".npz"]) == 1
 
 
@@ -116,7 +116,7 @@ def test_missing_and_corrupt_files_raise_clear_errors(tmp_path):
     with pytest.raises(CheckpointError, match="bank.json is missing"):
         load_bank(tmp_path)
     rng = np.random.default_rng(4)
-    _filled_bank(rng).save(tmp_path)
+    save_bank(_filled_bank(rng), tmp_path)
     state = tmp_path / STATE_FILE
     good = state.read_text()
     (npz,) = [p for p in tmp_path.iterdir() if p.suffix == ".npz"]
@@ -158,7 +158,7 @@ def test_config_mismatch_is_named(tmp_path):
     cfg = load_config(overrides=["clustering.buffer_size=6", "clustering.threshold=2.0", "clustering.feature_norm=buffer"])
     rng = np.random.default_rng(5)
     bank = _filled_bank(rng)
-    bank.save(tmp_path)
+    save_bank(bank, tmp_path)
     assert len(load_bank(tmp_path, config=cfg)) == len(bank)
     other = load_config(overrides=["clustering.buffer_size=6", "clustering.metric=euclidean", "clustering.feature_norm=buffer"])
     with pytest.raises(CheckpointError, match="metric: saved 'wasserstein', config 'euclidean'; threshold"):

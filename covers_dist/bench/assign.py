@@ -16,7 +16,7 @@ steps; default ``clustering.update_every * env.max_episode_steps`` of the config
 default) and reports assignment / rollout ratios.
 
 ``--ari`` measures clustering quality instead: the ARI on the toy stream (3 groups x 8 D4
-elements in random order, see :mod:`covers_dist.clustering.toy_stream`) with untrained encoders
+elements in random order, see :mod:`covers_dist.bench.toy_stream`) with untrained encoders
 of each kind, for each metric at its threshold, with the config's network, feature source,
 feature normalization and ``update_every`` (episodes per assignment).
 """
@@ -158,7 +158,7 @@ def _threshold(cfg: Config, metric: str) -> float:
 
 def run_ari(args: argparse.Namespace, cfg: Config) -> int:
     """ARI of the toy stream with untrained encoders, per metric x kind (see the module doc)."""
-    from ..clustering.toy_stream import run_toy_stream
+    from .toy_stream import run_toy_stream
 
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     if not kinds or any(k not in ("equivariant", "cnn") for k in kinds):

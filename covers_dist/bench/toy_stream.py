@@ -18,10 +18,10 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from ..clustering.bank import PolicyBank
+from ..clustering.features import FeatureFn, SharedFeatures
 from ..envs.toy import TOY_TASKS, ToyTask, toy_layout
 from ..symmetry import D4_ELEMENTS
-from .bank import PolicyBank
-from .features import FeatureFn, SharedFeatures
 
 __all__ = ["toy_initial_obs", "toy_stream", "encoder_features", "run_toy_stream"]
 

@@ -477,17 +477,3 @@ class PolicyBank:
             "policies": [self.entries[p].summary() for p in self.policy_ids],
             "metrics": self.metrics(),
         }
-
-    # ---- persistence (see covers_dist.clustering.persistence) -----------------------------------------
-    def save(self, directory: str) -> None:
-        """Write the whole state to ``directory`` atomically (see :mod:`.persistence`)."""
-        from .persistence import save_bank
-
-        save_bank(self, directory)
-
-    @classmethod
-    def load(cls, directory: str, feature_fn: FeatureFn | None = None, config: Any = None) -> "PolicyBank":
-        """Restore a bank saved by :meth:`save`; ``config`` (optional) must match its settings."""
-        from .persistence import load_bank
-
-        return load_bank(directory, feature_fn=feature_fn, config=config)

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from ..envs.layout import ObsLayout
-from .equivariant import block_sizes
+from ..sizes import block_sizes
 
 __all__ = ["CNNCore"]
 

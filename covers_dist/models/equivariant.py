@@ -35,6 +35,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..envs.layout import ObsLayout
+from ..sizes import block_sizes
 from ..symmetry import escnn_gspace, escnn_planar_repr, get_group
 from ._escnn_compat import import_escnn_nn
 
@@ -42,28 +43,6 @@ __all__ = ["EquivariantCore", "block_sizes", "canonical_change_of_basis", "space
 
 POLICY_HEAD_GAIN = 0.01
 _S2D_REPRS: dict[tuple[str, int], Any] = {}  # one representation per (gspace, k), built once
-
-
-def block_sizes(image_size: int, blocks: int, space_to_depth: int = 1) -> tuple[list[int], int]:
-    """Map side entering each conv block, and the side left for the full-map convolution.
-
-    The map starts at ``image_size / space_to_depth``; each block halves it while it is above 1.
-    Raises ``ValueError`` when a block would pool an odd map (equivariance needs exact halving).
-    """
-    if space_to_depth < 1 or image_size % space_to_depth:
-        raise ValueError(f"image_size={image_size} must be divisible by space_to_depth={space_to_depth}")
-    size, sizes = image_size // space_to_depth, []
-    for i in range(blocks):
-        sizes.append(size)
-        if size > 1:
-            if size % 2:
-                raise ValueError(
-                    f"image_size={image_size} with space_to_depth={space_to_depth}: conv block {i + 1} of {blocks} "
-                    f"would pool a {size} x {size} map (each block halves the map exactly; "
-                    f"image_size / space_to_depth must be divisible by 2**len(channels) or reach 1 x 1)"
-                )
-            size //= 2
-    return sizes, size
 
 
 def space_to_depth_repr(gspace: Any, k: int) -> Any:
