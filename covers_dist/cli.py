@@ -19,6 +19,7 @@ import pkgutil
 import sys
 
 from . import __version__
+from .commands._common import clean_help
 from .config import ConfigError
 from .clustering.persistence import CheckpointError
 
@@ -44,11 +45,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _discover("covers_dist.commands"):
         mod.register(sub)
-    bench = sub.add_parser("bench", help="benchmarks that print measured figures (tables in docs/, listed in the README)")
+    bench = sub.add_parser("bench", help="benchmarks that print measured figures (listed in docs/usage.md)")
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH")
     for mod in _discover("covers_dist.bench"):
         mod.register(bench_sub)
     bench.set_defaults(func=lambda args: (bench.print_help(), 2)[1])
+    clean_help(parser)  # module docstrings serve as descriptions: no reStructuredText markup in --help
     return parser
 
 

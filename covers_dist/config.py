@@ -1,7 +1,8 @@
 """One typed, validated configuration tree for covers-dist.
 
 Every hyperparameter lives here, in frozen dataclasses with a docstring per field (the ``doc``
-metadata). Configs are loaded from YAML files under ``configs/`` and overridden from the command
+metadata). Configs are loaded from YAML files (a path, or the name of a config shipped in
+``covers_dist/configs/``, e.g. ``quickstart``) and overridden from the command
 line with ``--set section.field=value`` (the value is parsed as YAML: ``--set ppo.lr=1e-4``,
 ``--set env.tasks=[reach,push]``).
 
@@ -31,6 +32,8 @@ __all__ = [
     "EvalConfig",
     "Config",
     "load_config",
+    "resolve_config_path",
+    "shipped_configs",
     "config_from_dict",
     "config_to_dict",
     "apply_overrides",
@@ -294,10 +297,12 @@ class ApiConfig:
     port: int = _f(8000, "TCP port.", min=0, max=65535)
     token: str | None = _f(None, "Bearer token required on every route but health checks (or COVERS_API_TOKEN).")
     max_body_bytes: int = _f(8_000_000, "Largest accepted request body in bytes (larger: 413).", min=1)
-    max_batch: int = _f(256, "Most observations in one POST /v1/assign request.", min=1)
+    max_batch: int = _f(256, "Most observations in one POST /v1/assignments/what-if request.", min=1)
     refresh_s: float = _f(0.5, "Seconds between snapshots of the clustering state that the GET endpoints serve.", gt=0.0)
     request_timeout_s: float = _f(30.0, "Seconds to wait for the clustering service before answering 503.", gt=0.0)
-    compute_concurrency: int = _f(2, "POST /v1/assign and /v1/act calls in flight at once (others wait).", min=1)
+    compute_concurrency: int = _f(
+        2, "POST /v1/assignments/what-if and /v1/act calls in flight at once (others wait).", min=1
+    )
 
 
 EvalMode = Literal["greedy", "stochastic"]
@@ -375,7 +380,7 @@ def _validate_cross_fields(cfg: Config) -> None:
             f"network.proprio_norm=true: env.suite={cfg.env.suite} has no proprio statistics "
             f"(suites that have them: {list(SUITES_WITH_PROPRIO_STATS)})"
         )
-    from .models.equivariant import block_sizes  # plain arithmetic, no escnn import
+    from .sizes import block_sizes  # plain arithmetic: importing it pulls in no torch
 
     try:
         block_sizes(cfg.env.image_size, len(cfg.network.channels), cfg.network.space_to_depth)
@@ -561,9 +566,45 @@ def _read_yaml(path: str | Path) -> dict[str, Any]:
     return loaded
 
 
+#: The configs shipped inside the package (``covers_dist/configs/*.yaml``; the repository's
+#: top-level ``configs`` points there).
+SHIPPED_CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+
+
+def shipped_configs() -> dict[str, Path]:
+    """The shipped configs by name (file name without ``.yaml``), sorted."""
+    return {p.stem: p for p in sorted(SHIPPED_CONFIG_DIR.glob("*.yaml"))}
+
+
+def resolve_config_path(path: str | Path) -> Path:
+    """The YAML file a ``--config`` value names.
+
+    An existing file is used as given. Otherwise a bare name (``quickstart`` or ``quickstart.yaml``)
+    or the repository path of a shipped config (``configs/quickstart.yaml``) names the file shipped
+    in the package, so it resolves from any working directory. Anything else raises
+    :class:`ConfigError` listing the shipped names.
+    """
+    p = Path(path)
+    if p.is_file():
+        return p
+    shipped = shipped_configs()
+    name = p.name[: -len(".yaml")] if p.name.endswith(".yaml") else p.name
+    bare = len(p.parts) == 1
+    if name in shipped and (bare or (not p.is_absolute() and p.parent == Path("configs"))):
+        return shipped[name]
+    names = ", ".join(shipped) or "none"
+    if bare:
+        raise ConfigError(f"config {str(path)!r} does not exist: no such file and no shipped config of that name "
+                          f"(shipped: {names})")
+    raise ConfigError(f"config file {str(p)!r} does not exist (shipped configs, usable by name: {names})")
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
-    """Load a YAML config (or the defaults when ``path`` is None) and apply overrides."""
-    data: dict[str, Any] = {} if path is None else _read_yaml(path)
+    """Load a YAML config (or the defaults when ``path`` is None) and apply overrides.
+
+    ``path`` is a file or the name of a shipped config (:func:`resolve_config_path`).
+    """
+    data: dict[str, Any] = {} if path is None else _read_yaml(resolve_config_path(path))
     return config_from_dict(apply_overrides(data, overrides))
 
 

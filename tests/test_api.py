@@ -63,7 +63,7 @@ def test_policies_match_the_bank(client, service):
 
 
 def test_current_assignment_and_history(client, service):
-    cur = client.get("/v1/assignment").json()
+    cur = client.get("/v1/assignments/latest").json()
     assert cur["current_policy_id"] == service.current_policy_id()
     assert cur["num_assignments"] == service.num_assignments() == len(STREAM)
     last = service.last_assignment()
@@ -92,20 +92,65 @@ def test_metrics_json_and_prometheus(client, service):
     text = client.get("/metrics")
     assert text.status_code == 200 and text.headers["content-type"].startswith("text/plain")
     families = {f.name: f for f in text_string_to_metric_families(text.text)}
-    assert families["covers_num_policies"].samples[0].value == want["num_policies"]
+    assert families["covers_policies"].type == "gauge"
+    assert families["covers_policies"].samples[0].value == want["num_policies"]
+    for counter in ("covers_episodes", "covers_env_steps", "covers_iterations", "covers_policy_episodes"):
+        assert families[counter].type == "counter", counter
+        assert all(s.name == f"{counter}_total" for s in families[counter].samples), counter
     assert families["covers_episodes"].samples[0].value == 4 * len(STREAM)
-    assert {s.labels["policy"] for s in families["covers_policy_episodes"].samples} == {
+    assert families["covers_iterations"].samples[0].value == len(STREAM)
+    assert {s.labels["policy_id"] for s in families["covers_policy_episodes"].samples} == {
         str(p) for p in service.bank.policy_ids
     }
+    info = families["covers_current_policy_info"].samples
+    assert [(s.labels, s.value) for s in info] == [({"policy_id": str(want["current_policy_id"])}, 1.0)]
+    assert families["covers_success_ratio"].samples[0].labels == {"task": "push"}
+    assert families["covers_success_ratio"].samples[0].value == 0.5
+    # no rate gauges, no ids as values: speeds come from rate() over the counters
+    assert not {"covers_env_steps_per_second", "covers_current_policy_id", "covers_num_policies"} & set(families)
     served = [s for s in families["covers_api_requests"].samples if s.name == "covers_api_requests_total"]
     assert any(s.labels["route"] == "/v1/metrics" and s.labels["status"] == "200" for s in served)
+
+
+def test_every_exported_metric_is_documented(client):
+    """docs/api.md's metrics table names every family /metrics exports, with its type."""
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "api.md").read_text()
+    table = dict(re.findall(r"^\| `(covers_[a-z_]+)(?:\{[^}]*\})?` \| (\w+) \|", doc, re.M))
+    client.get("/v1/metrics")
+    families = list(text_string_to_metric_families(client.get("/metrics").text))
+    assert families
+    for f in families:
+        if f.name.endswith("_created"):  # prometheus_client's creation time of a documented counter or histogram
+            base = f.name[: -len("_created")]
+            assert f"{base}_total" in table or base in table, f.name
+            continue
+        exposed = f"{f.name}_total" if f.type == "counter" else f.name
+        assert table.get(exposed) == f.type, (exposed, f.type)
+
+
+def test_deprecated_paths_still_answer_and_say_so(client):
+    new = client.get("/v1/assignments/latest")
+    old = client.get("/v1/assignment")
+    assert old.status_code == new.status_code == 200 and old.json() == new.json()
+    assert old.headers["deprecation"] == "true" and "deprecation" not in new.headers
+    assert old.headers["link"] == '</v1/assignments/latest>; rel="successor-version"'
+    bad = client.post("/v1/assign", json={"observations": []})
+    assert bad.status_code == 422 and bad.headers["deprecation"] == "true"
+    assert bad.headers["link"] == '</v1/assignments/what-if>; rel="successor-version"'
+    ops = client.get("/openapi.json").json()["paths"]
+    assert ops["/v1/assignment"]["get"]["deprecated"] is True and ops["/v1/assign"]["post"]["deprecated"] is True
+    assert "deprecated" not in ops["/v1/assignments/latest"]["get"]
+    assert "deprecated" not in ops["/v1/assignments/what-if"]["post"]
 
 
 @pytest.mark.parametrize("png", [True, False], ids=["png", "array"])
 def test_what_if_matches_the_bank_and_changes_nothing(client, service, cfg, png):
     obs = initial_obs(cfg, "push", "r3", [500, 501, 502])
     before = (service.num_assignments(), service.summary()["policies"])
-    r = client.post("/v1/assign", json={"observations": obs_batch_json(obs, png=png)})
+    r = client.post("/v1/assignments/what-if", json={"observations": obs_batch_json(obs, png=png)})
     assert r.status_code == 200, r.text
     want = service.bank.what_if(obs).to_dict()
     got = r.json()
@@ -135,13 +180,13 @@ def test_snapshot_follows_new_assignments(cfg):
     service = filled_service(cfg, STREAM[:2])
     with ApiServerThread(create_app(cfg, LocalSource(service), token="")).start() as server:
         with httpx.Client(base_url=server.url, timeout=30) as c:
-            assert c.get("/v1/assignment").json()["num_assignments"] == 2
+            assert c.get("/v1/assignments/latest").json()["num_assignments"] == 2
             obs = initial_obs(cfg, "reach", "r2", [8, 9, 10, 11])
             weights = {pid: (1, policy_weights(cfg, pid)) for pid in service.models}
             record = service.assign(2, obs, [8, 9, 10, 11], [0] * 4, weights)
             page = wait_until(lambda: (p := c.get("/v1/assignments").json())["total"] == 3 and p, timeout_s=5)
             assert page["items"][-1]["policy_id"] == record["policy_id"]
-            assert c.get("/v1/assignment").json()["last"]["index"] == 2
+            assert c.get("/v1/assignments/latest").json()["last"]["index"] == 2
 
 
 def test_empty_bank(cfg):
@@ -149,11 +194,11 @@ def test_empty_bank(cfg):
     with ApiServerThread(create_app(cfg, LocalSource(service), token="")).start() as server:
         with httpx.Client(base_url=server.url, timeout=30) as c:
             assert c.get("/v1/policies").json()["policies"] == []
-            cur = c.get("/v1/assignment").json()
+            cur = c.get("/v1/assignments/latest").json()
             assert cur["last"] is None and cur["current_policy_id"] is None and cur["num_assignments"] == 0
             assert c.get("/v1/metrics").json()["ari"] is None
             one = obs_batch_json(initial_obs(cfg, "reach", "e", [1]))
-            r = c.post("/v1/assign", json={"observations": one})
+            r = c.post("/v1/assignments/what-if", json={"observations": one})
             assert r.status_code == 409 and "empty" in r.json()["detail"]
             r = c.post("/v1/act", json={"observation": one[0]})
             assert r.status_code == 404 and "no current policy" in r.json()["detail"]

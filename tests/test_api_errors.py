@@ -81,7 +81,7 @@ def test_malformed_observations(client, good):
     ]
     for obs, words in cases:
         _expect(client.post("/v1/act", json={"observation": obs}), 422, words)
-        _expect(client.post("/v1/assign", json={"observations": [obs, good[1]]}), 422, words)
+        _expect(client.post("/v1/assignments/what-if", json={"observations": [obs, good[1]]}), 422, words)
 
 
 def test_malformed_bodies(client, good):
@@ -96,9 +96,10 @@ def test_malformed_bodies(client, good):
     _expect(client.post("/v1/act", json={"observation": good[0], "policy_id": -1}), 422, "policy_id")
     _expect(client.post("/v1/act", json={"observation": good[0], "policy_id": "1"}), 422, "policy_id")
     _expect(client.post("/v1/act", json={"observation": good[0], "deterministic": "maybe"}), 422, "deterministic")
-    _expect(client.post("/v1/assign", json={"observations": []}), 422, "observations")
-    _expect(client.post("/v1/assign", json={"observations": good[:1]}), 422, "multiple of clustering.initial_frames=2")
-    _expect(client.post("/v1/assign", json={"observations": good * 5}), 422, "at most api.max_batch=8")
+    what_if = "/v1/assignments/what-if"
+    _expect(client.post(what_if, json={"observations": []}), 422, "observations")
+    _expect(client.post(what_if, json={"observations": good[:1]}), 422, "multiple of clustering.initial_frames=2")
+    _expect(client.post(what_if, json={"observations": good * 5}), 422, "at most api.max_batch=8")
 
 
 def test_unknown_ids_and_bad_query_params(client, good):
@@ -122,7 +123,8 @@ def test_body_size_limit(client, cfg):
         for _ in range(40):
             yield b" " * 10_000
 
-    _expect(client.post("/v1/assign", content=chunks(), headers={"content-type": "application/json"}), 413)
+    headers = {"content-type": "application/json"}
+    _expect(client.post("/v1/assignments/what-if", content=chunks(), headers=headers), 413)
     # the server still answers afterwards
     assert client.get("/healthz").status_code == 200
 
@@ -139,7 +141,8 @@ def test_bearer_token(cfg, service, good, monkeypatch, from_env):
         auth = {"Authorization": f"Bearer {TOKEN}"}
         for path in ("/healthz", "/readyz", "/openapi.json"):
             assert c.get(path).status_code == 200, path
-        for path in ("/v1/policies", "/v1/policies/0", "/v1/assignment", "/v1/assignments", "/v1/metrics", "/metrics"):
+        paths = ("/v1/policies", "/v1/policies/0", "/v1/assignments/latest", "/v1/assignment", "/v1/assignments")
+        for path in (*paths, "/v1/metrics", "/metrics"):
             r = c.get(path)
             _expect(r, 401, "bearer token")
             assert r.headers["www-authenticate"] == "Bearer"
@@ -148,8 +151,8 @@ def test_bearer_token(cfg, service, good, monkeypatch, from_env):
             assert c.get(path, headers=auth).status_code == 200, path
         _expect(c.post("/v1/act", json={"observation": good[0]}), 401)
         assert c.post("/v1/act", json={"observation": good[0]}, headers=auth).status_code == 200
-        _expect(c.post("/v1/assign", json={"observations": good}), 401)
-        assert c.post("/v1/assign", json={"observations": good}, headers=auth).status_code == 200
+        _expect(c.post("/v1/assignments/what-if", json={"observations": good}), 401)
+        assert c.post("/v1/assignments/what-if", json={"observations": good}, headers=auth).status_code == 200
 
 
 def test_no_token_means_open(client, good):
@@ -168,10 +171,20 @@ def test_serve_cli_fails_clearly(tmp_path):
     from covers_dist.cli import main
 
     with pytest.raises(SystemExit, match="is not a run directory"):
-        main(["serve", "--checkpoint", str(tmp_path)])
+        main(["serve", "--run-dir", str(tmp_path)])
     (tmp_path / "config.yaml").write_text("name: empty\n")
     with pytest.raises(SystemExit, match="no valid checkpoint"):
-        main(["serve", "--checkpoint", str(tmp_path), "--port", "0"])
+        main(["serve", "--run-dir", str(tmp_path), "--port", "0"])
     with pytest.raises(SystemExit, match="no Ray cluster answers at 127.0.0.1:1"):
         main(["serve", "--address", "127.0.0.1:1", "--name", "nothing"])
-    assert main(["serve", "--checkpoint", str(tmp_path), "--set", "runtime.num_workers=3"]) == 2
+    assert main(["serve", "--run-dir", str(tmp_path), "--set", "runtime.num_workers=3"]) == 2
+
+
+def test_serve_checkpoint_flag_is_a_deprecated_alias_of_run_dir(tmp_path, capsys):
+    from covers_dist.cli import main
+
+    with pytest.raises(SystemExit, match="is not a run directory"):
+        main(["serve", "--checkpoint", str(tmp_path)])
+    assert "--checkpoint is deprecated, use --run-dir" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # one or the other
+        main(["serve", "--checkpoint", str(tmp_path), "--run-dir", str(tmp_path)])

@@ -5,7 +5,16 @@ from pathlib import Path
 import pytest
 
 from covers_dist.cli import main
-from covers_dist.config import DEFAULT_THRESHOLDS, Config, ConfigError, config_from_dict, describe, load_config
+from covers_dist.config import (
+    DEFAULT_THRESHOLDS,
+    Config,
+    ConfigError,
+    config_from_dict,
+    describe,
+    load_config,
+    resolve_config_path,
+    shipped_configs,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -13,8 +22,50 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_defaults_and_every_shipped_config_load():
     cfg = load_config()
     assert isinstance(cfg, Config) and cfg.threshold == 1.0
-    for path in sorted((ROOT / "configs").glob("*.yaml")):
-        load_config(path)
+    shipped = shipped_configs()
+    assert {"smoke", "quickstart", "demo", "default"} <= set(shipped)
+    for name, path in shipped.items():
+        assert load_config(name) == load_config(path), name
+
+
+def test_shipped_configs_resolve_by_name_from_any_directory(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    want = load_config(ROOT / "covers_dist" / "configs" / "quickstart.yaml")
+    for name in ("quickstart", "quickstart.yaml", "configs/quickstart.yaml"):
+        assert resolve_config_path(name) == shipped_configs()["quickstart"]
+        assert load_config(name) == want, name
+    # a file in the working directory wins over a shipped name
+    (tmp_path / "quickstart.yaml").write_text("seed: 7\n")
+    assert load_config("quickstart.yaml").seed == 7 and load_config("quickstart").seed == want.seed
+    for bad in ("quickstrat", "nope.yaml", "elsewhere/quickstart.yaml"):
+        with pytest.raises(ConfigError, match=r"does not exist.*quickstart, smoke"):
+            load_config(bad)
+    assert main(["config", "--config", "smoke"]) == 0
+    assert capsys.readouterr().out.startswith("name: smoke\n")
+    assert main(["config", "--config", "quickstrat"]) == 2
+    err = capsys.readouterr().err
+    assert "config 'quickstrat' does not exist" in err and "demo" in err and "paper_cpu" in err
+
+
+def test_config_list_names_every_shipped_config(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["config", "list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines] == list(shipped_configs())
+    assert all(len(line.split()) > 1 for line in lines)  # each with its one-line purpose
+
+
+def test_shipped_configs_are_package_data_and_the_repository_path_still_works():
+    import tomllib
+
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    patterns = data["tool"]["setuptools"]["package-data"]["covers_dist"]
+    assert "configs/*.yaml" in patterns
+    shipped = shipped_configs()
+    assert all(p.parent == ROOT / "covers_dist" / "configs" for p in shipped.values())
+    # the repository's top-level configs/ (README, Makefile, deploy/) reaches the same files
+    assert sorted(p.name for p in (ROOT / "configs").glob("*.yaml")) == sorted(p.name for p in shipped.values())
+    assert (ROOT / "configs" / "demo.yaml").read_text() == shipped["demo"].read_text()
 
 
 def test_overrides_parse_values_as_yaml():
@@ -78,6 +129,49 @@ def test_cli_help_lists_subcommands(capsys):
     out = capsys.readouterr().out
     for sub in ("config", "demo", "bench"):
         assert sub in out
+
+
+def _all_parsers():
+    import argparse
+
+    from covers_dist.cli import build_parser
+
+    def walk(parser, name):
+        yield name, parser
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub, child in action.choices.items():
+                    yield from walk(child, f"{name} {sub}")
+
+    return list(walk(build_parser(), "covers-dist"))
+
+
+def test_help_texts_show_no_restructuredtext():
+    import re
+
+    markup = re.compile(r"``|:(?:py:)?(?:func|mod|class|data|meth|attr|obj|exc|ref|doc):`")
+    parsers = _all_parsers()
+    assert len(parsers) > 10
+    for name, parser in parsers:
+        text = parser.format_help()
+        assert not markup.search(text), (name, markup.findall(text))
+
+
+def test_list_flags_are_comma_separated_and_accept_spaces_too():
+    """One convention for list-valued flags: comma-separated, space-separated also accepted where a
+    flag took several values before."""
+    from covers_dist.cli import build_parser
+    from covers_dist.commands._common import CommaList
+
+    parser = build_parser()
+    render = parser.parse_args(["bench", "render", "--tasks", "reach-v3,drawer-close-v3", "plate-slide-v3"])
+    assert render.tasks == ["reach-v3", "drawer-close-v3", "plate-slide-v3"]
+    assert parser.parse_args(["bench", "learn", "--merge", "a.json,b.json"]).merge == ["a.json", "b.json"]
+    assert parser.parse_args(["bench", "learn", "--merge", "a.json", "b.json"]).merge == ["a.json", "b.json"]
+    for name, p in _all_parsers():  # no flag takes a space-separated list only
+        for action in p._actions:
+            if action.option_strings and action.nargs in ("+", "*") and not isinstance(action, CommaList):
+                raise AssertionError(f"{name} {action.option_strings}: nargs={action.nargs!r} without CommaList")
 
 
 def test_cli_reports_config_errors(capsys):

@@ -27,7 +27,7 @@ from covers_dist.evaluation import (
     run_evaluation,
 )
 from covers_dist.evaluation.protocol import EvalPair, pair_rows, plan_jobs
-from covers_dist.runtime import driver as driver_module
+from covers_dist.runtime import evaluation as runtime_evaluation
 from covers_dist.runtime.driver import Trainer
 from covers_dist.runtime.rollout import episode_seed
 from covers_dist.symmetry import get_group
@@ -570,7 +570,7 @@ def test_background_pass_still_running_at_the_end_is_followed_by_a_final_pass(tm
     import threading
 
     release = threading.Event()
-    real = driver_module.evaluation_pass
+    real = runtime_evaluation.evaluation_pass
     calls = []
 
     def slow_pass(*args, **kwargs):
@@ -579,7 +579,7 @@ def test_background_pass_still_running_at_the_end_is_followed_by_a_final_pass(tm
             assert release.wait(120)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(driver_module, "evaluation_pass", slow_pass)
+    monkeypatch.setattr(runtime_evaluation, "evaluation_pass", slow_pass)
     cfg = tiny_cfg(
         tmp_path, "runtime.total_env_steps=400", "eval.every_iterations=1", "eval.tasks=[reach]", "eval.modes=[greedy]",
         "eval.episodes=1",

@@ -132,7 +132,7 @@ def test_train_then_plot_eval_report(plain, trained):
 
 
 def test_serve_a_saved_run(plain, trained):
-    proc = subprocess.Popen([EXE, "serve", "--checkpoint", str(trained), "--port", "0"], env=plain.env,
+    proc = subprocess.Popen([EXE, "serve", "--run-dir", str(trained), "--port", "0"], env=plain.env,
                             cwd=plain.base, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.time() + 90

@@ -25,7 +25,7 @@ from .. import __version__
 from ..config import Config
 from ..envs import suite_layout
 from .deps import ApiState
-from .middleware import BodyLimitMiddleware, RequestMetricsMiddleware
+from .middleware import BodyLimitMiddleware, DeprecationMiddleware, RequestMetricsMiddleware
 from .routers import actions, assignments, health, metrics, policies
 from .snapshot import SnapshotCache
 from .sources import Source
@@ -116,6 +116,7 @@ def create_app(cfg: Config, source: Source, *, token: str | None = None) -> Fast
     app.add_exception_handler(StarletteHTTPException, _http_error)  # type: ignore[arg-type]
     for router in (health.router, policies.router, assignments.router, actions.router, metrics.router):
         app.include_router(router)
+    app.add_middleware(DeprecationMiddleware, successors=assignments.SUCCESSORS)
     app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.api.max_body_bytes)
     app.add_middleware(RequestMetricsMiddleware, metrics=request_metrics)  # outermost: counts 413s too
     return app

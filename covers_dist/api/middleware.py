@@ -1,4 +1,4 @@
-"""ASGI middleware: the request-body cap (413) and the request metrics.
+"""ASGI middleware: the request-body cap (413), the request metrics and the deprecation headers.
 
 The body cap answers 413 as soon as a declared ``Content-Length`` is too large, before any of
 the body is read; a body sent without a length (chunked) is read only up to the cap.
@@ -16,7 +16,7 @@ Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
-__all__ = ["BodyLimitMiddleware", "RequestMetricsMiddleware", "send_error"]
+__all__ = ["BodyLimitMiddleware", "DeprecationMiddleware", "RequestMetricsMiddleware", "send_error"]
 
 
 async def send_error(send: Send, status: int, detail: str, headers: list[tuple[bytes, bytes]] | None = None) -> None:
@@ -106,3 +106,30 @@ class RequestMetricsMiddleware:
         finally:
             route = getattr(scope.get("route"), "path", None) or "unmatched"
             self.metrics.observe(scope.get("method", ""), route, status, time.perf_counter() - t0)
+
+
+class DeprecationMiddleware:
+    """Marks the answers of deprecated routes (``deprecated=True``): ``Deprecation: true`` and, when
+    ``successors`` maps the route's path to its replacement, ``Link: <new>; rel="successor-version"``.
+    Errors of those routes (404, 422, ...) carry the headers too."""
+
+    def __init__(self, app: ASGIApp, successors: dict[str, str] | None = None) -> None:
+        self.app = app
+        self.successors = dict(successors or {})
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def send_marked(message: Message) -> None:
+            route = scope.get("route")
+            if message["type"] == "http.response.start" and getattr(route, "deprecated", False):
+                headers = [*message.get("headers", []), (b"deprecation", b"true")]
+                new = self.successors.get(getattr(route, "path", ""))
+                if new:
+                    headers.append((b"link", f'<{new}>; rel="successor-version"'.encode()))
+                message = {**message, "headers": headers}
+            await send(message)
+
+        await self.app(scope, receive, send_marked)

@@ -238,5 +238,5 @@ def training_service(cfg: Config, source: Any, log: Any = print) -> SupervisedAp
     if not cfg.api.enabled:
         return None
     service = SupervisedApiServer(cfg, source, log).start()
-    log(f"HTTP service: {service.url} (e.g. curl {service.url}/v1/assignment; docs at {service.url}/docs)")
+    log(f"HTTP service: {service.url} (e.g. curl {service.url}/v1/assignments/latest; docs at {service.url}/docs)")
     return service

@@ -27,13 +27,16 @@ from typing import Any
 
 import numpy as np
 
+from ..commands._common import CommaList
+
 DEFAULT_TASKS = ("reach-v3", "button-press-topdown-v3", "drawer-close-v3", "plate-slide-v3")
 TARGET_RATIO = 0.5
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="Meta-World physics vs rendered steps/s (target: rendered >= 0.5 x physics)")
-    p.add_argument("--tasks", nargs="+", default=list(DEFAULT_TASKS), help="base tasks (default: the four of the paper)")
+    p.add_argument("--tasks", action=CommaList, default=list(DEFAULT_TASKS), metavar="TASK[,TASK...]",
+                   help="comma-separated base tasks (default: the four of the paper)")  # fmt: skip
     p.add_argument("--image-size", type=int, default=64, help="image side in pixels (default: 64)")
     p.add_argument("--steps", type=int, default=600, help="timed steps per mode and repeat (default: 600)")
     p.add_argument("--stock-steps", type=int, default=150, help="timed steps of the slow stock camera (default: 150)")

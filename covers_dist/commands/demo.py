@@ -4,7 +4,8 @@ This is what the project can show without training: each toy task group, seen th
 element of D4, stepped with random actions that are transformed with the task, while checking
 that the transformed task is exactly equivalent to the base task (pixel-equal images, equal
 rewards). It writes ``toy_grid.png`` (rows: task groups, columns: D4 elements) into the output
-directory and prints the measured steps/s.
+directory (default ``runs/toy-grid``) and prints the measured steps/s. It trains nothing; ``make
+demo`` is the training demo (``runs/demo``).
 """
 
 from __future__ import annotations
@@ -20,8 +21,10 @@ from ..symmetry import D4_ELEMENTS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="roll out the toy tasks under all of D4 and write an image grid")
-    p.add_argument("--out", default="runs/demo", help="output directory (default: runs/demo)")
+    p = sub.add_parser(
+        "demo", help="roll out the toy tasks under all of D4 and write an image grid (no training; `make demo` trains)"
+    )
+    p.add_argument("--out", default="runs/toy-grid", help="output directory (default: runs/toy-grid)")
     p.add_argument("--episodes", type=int, default=2, help="episodes per (task, element) (default: 2)")
     p.add_argument("--image-size", type=int, default=64, help="image side in pixels (default: 64)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")

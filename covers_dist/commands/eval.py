@@ -56,6 +56,10 @@ def run(args: argparse.Namespace) -> int:
     from ..runtime.checkpoint import CheckpointError
     from ..runtime.evaluation import evaluate_saved_run
 
+    if args.episodes < 1:
+        raise SystemExit(f"covers-dist eval: --episodes must be >= 1, got {args.episodes}")
+    if args.workers < 0:
+        raise SystemExit(f"covers-dist eval: --workers must be >= 0, got {args.workers}")
     try:
         result = evaluate_saved_run(
             args.run_dir,

@@ -1,11 +1,12 @@
 """``covers-dist serve``: the HTTP service against a running cluster or a saved run.
 
-* ``--checkpoint RUN_DIR``: the newest valid checkpoint of a run, loaded read-only in this process;
-* ``--address RAY_ADDRESS --name RUN_NAME``: the clustering actor ``covers-clustering-RUN_NAME``
-  of a training job on that Ray cluster.
+* --run-dir RUN_DIR: the newest valid checkpoint of a saved run, loaded read-only in this process
+  (--checkpoint RUN_DIR is a deprecated alias);
+* --address RAY_ADDRESS --name RUN_NAME: the clustering actor covers-clustering-RUN_NAME of a
+  training job on that Ray cluster.
 
-Binds to ``api.host:api.port`` (127.0.0.1:8000 unless configured); the bearer token comes from
-``api.token`` or ``$COVERS_API_TOKEN``. Stops on SIGINT/SIGTERM.
+Binds to api.host:api.port (127.0.0.1:8000 unless configured); the bearer token comes from
+api.token or $COVERS_API_TOKEN. Stops on SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -19,6 +20,14 @@ import threading
 from ._common import add_config_args
 
 
+class _DeprecatedRunDir(argparse.Action):
+    """``--checkpoint RUN_DIR``, the old name of ``--run-dir``: stores the same value and warns."""
+
+    def __call__(self, parser, namespace, values, option_string=None):  # noqa: ANN001
+        print(f"covers-dist serve: {option_string} is deprecated, use --run-dir (same meaning)", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "serve",
@@ -28,8 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument(
-        "--checkpoint", metavar="RUN_DIR", help="serve the newest valid checkpoint of RUN_DIR (read-only)"
+        "--run-dir", metavar="RUN_DIR", help="serve the newest valid checkpoint of the saved run RUN_DIR (read-only)"
     )
+    where.add_argument("--checkpoint", dest="run_dir", action=_DeprecatedRunDir, help=argparse.SUPPRESS)
     where.add_argument("--address", metavar="RAY_ADDRESS", help="Ray cluster address of a running training job")
     p.add_argument("--name", metavar="RUN_NAME", help="run name (config `name`) of the job at --address")
     p.add_argument("--actor", help="full name of the clustering actor (default: covers-clustering-RUN_NAME)")
@@ -38,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, help="TCP port (default: api.port; 0 picks a free one)")
     add_config_args(p)
     p.epilog = (
-        "With --checkpoint the run's own config is used and --config/--set change only its api section; "
+        "With --run-dir the run's own config is used and --config/--set change only its api section; "
         "with --address, --config should be the job's config (observation sizes, run name)."
     )
     p.set_defaults(func=run)
@@ -54,19 +64,19 @@ def _config(args: argparse.Namespace):  # noqa: ANN202
         if not 0 <= args.port <= 65535:
             raise ConfigError(f"--port={args.port} must be in 0..65535")
         overrides.append(f"api.port={args.port}")
-    if args.checkpoint is None:
+    if args.run_dir is None:
         return load_config(args.config, overrides)
     from pathlib import Path
 
-    run_cfg = Path(args.checkpoint) / "config.yaml"
+    run_cfg = Path(args.run_dir) / "config.yaml"
     if not run_cfg.is_file():
-        raise SystemExit(f"covers-dist serve: {args.checkpoint} is not a run directory (no config.yaml)")
+        raise SystemExit(f"covers-dist serve: {args.run_dir} is not a run directory (no config.yaml)")
     data = config_to_dict(load_run_config(run_cfg))
     if args.config is not None:
         data["api"] = config_to_dict(load_config(args.config)).get("api", data["api"])
     bad = [o for o in overrides if not o.strip().startswith("api.")]
     if bad:
-        raise ConfigError(f"with --checkpoint only api.* fields can be set, got {bad}")
+        raise ConfigError(f"with --run-dir only api.* fields can be set, got {bad}")
     return config_from_dict(apply_overrides(data, overrides))
 
 
@@ -76,13 +86,13 @@ def run(args: argparse.Namespace) -> int:
     from ..api.sources import RaySource, SourceUnavailable, load_checkpoint_source
 
     cfg = _config(args)
-    if args.checkpoint is not None:
+    if args.run_dir is not None:
         try:
-            source, run_cfg, ckpt = load_checkpoint_source(args.checkpoint, cfg.api.request_timeout_s)
+            source, run_cfg, ckpt = load_checkpoint_source(args.run_dir, cfg.api.request_timeout_s)
         except (FileNotFoundError, ValueError) as e:
             raise SystemExit(f"covers-dist serve: {e}") from None
         cfg = dataclasses.replace(run_cfg, api=cfg.api)
-        print(f"covers-dist serve: read-only run {args.checkpoint} (checkpoint {ckpt.name})", flush=True)
+        print(f"covers-dist serve: read-only run {args.run_dir} (checkpoint {ckpt.name})", flush=True)
     else:
         from ..runtime.actors import clustering_actor_name
 

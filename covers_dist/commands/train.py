@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "RUN_DIR/metrics.jsonl, episodes.jsonl and tb/; checkpoints to RUN_DIR/checkpoints/."
         ),
     )
-    add_config_args(p, default="configs/smoke.yaml")
+    add_config_args(p, default="smoke")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its newest valid checkpoint")
     p.add_argument("--address", help="Ray cluster address (default: start a local instance on 127.0.0.1)")
     p.add_argument("--serial", action="store_true", help="run every component in this process (no Ray)")

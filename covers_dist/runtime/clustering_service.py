@@ -1,7 +1,7 @@
 """The clustering service: hosts the policy bank and answers queries about it.
 
 A plain class: in a Ray run it is the named clustering actor (see :mod:`.actors`), in serial mode
-the driver calls it directly, and ``covers-dist serve --checkpoint`` loads one read-only.
+the driver calls it directly, and ``covers-dist serve --run-dir`` loads one read-only.
 
 * It receives only the first-k observations of each episode, never whole trajectories.
 * Features come from each policy's own network (``clustering.feature_source: own``) or from one

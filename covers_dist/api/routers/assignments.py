@@ -1,5 +1,10 @@
-"""Assignments: ``GET /v1/assignment`` (current), ``GET /v1/assignments`` (history, paged) and
-``POST /v1/assign`` (what the bank would decide for posted observations, changing nothing)."""
+"""Assignments: ``GET /v1/assignments/latest`` (the current policy and the latest record),
+``GET /v1/assignments`` (the history, paged) and ``POST /v1/assignments/what-if`` (what the bank
+would decide for posted observations, changing nothing).
+
+``GET /v1/assignment`` and ``POST /v1/assign``, the old names of the first and the last, stay for
+one release: marked deprecated in the schema, answered with ``Deprecation: true`` and a ``Link`` to
+the new path (:data:`SUCCESSORS`, added by the app's middleware)."""
 
 from __future__ import annotations
 
@@ -13,15 +18,22 @@ from ..snapshot import Snapshot, json_safe
 router = APIRouter(prefix="/v1", tags=["assignments"], dependencies=[Depends(require_token)])
 
 MAX_PAGE = 1000
+LATEST, WHAT_IF = "/v1/assignments/latest", "/v1/assignments/what-if"
+#: Deprecated paths and the paths that replace them (removed in the release after 0.1).
+SUCCESSORS: dict[str, str] = {"/v1/assignment": LATEST, "/v1/assign": WHAT_IF}
+
+
+def _deprecated(new: str) -> str:
+    return f"Deprecated alias of `{new}` (same answer), removed in the next release."
 
 
 @router.get(
-    "/assignment",
+    "/assignments/latest",
     response_model=CurrentAssignment,
     summary="The current policy and the latest assignment record",
     responses=ERROR_RESPONSES,
 )
-async def current_assignment(snap: Snapshot = Depends(current_snapshot)) -> Response:
+async def latest_assignment(snap: Snapshot = Depends(current_snapshot)) -> Response:
     def build() -> CurrentAssignment:
         return CurrentAssignment(
             current_policy_id=snap.summary.get("current_policy_id"),
@@ -31,6 +43,18 @@ async def current_assignment(snap: Snapshot = Depends(current_snapshot)) -> Resp
         )
 
     return snapshot_json(snap, "assignment", build)
+
+
+@router.get(
+    "/assignment",
+    response_model=CurrentAssignment,
+    summary="The current policy and the latest assignment record (deprecated path)",
+    description=_deprecated(f"GET {LATEST}"),
+    responses=ERROR_RESPONSES,
+    deprecated=True,
+)
+async def current_assignment(snap: Snapshot = Depends(current_snapshot)) -> Response:
+    return await latest_assignment(snap)
 
 
 @router.get(
@@ -57,8 +81,11 @@ async def assignment_history(
     )
 
 
+WHAT_IF_RESPONSES = {**ERROR_RESPONSES, 409: {"model": ErrorBody, "description": "The policy bank is still empty."}}
+
+
 @router.post(
-    "/assign",
+    "/assignments/what-if",
     response_model=WhatIfResult,
     summary="What-if: the policy the bank would assign to these initial observations",
     description=(
@@ -66,7 +93,7 @@ async def assignment_history(
         "episodes) to every policy's buffer and applies the assignment rule, without changing "
         "the bank."
     ),
-    responses={**ERROR_RESPONSES, 409: {"model": ErrorBody, "description": "The policy bank is still empty."}},
+    responses=WHAT_IF_RESPONSES,
 )
 async def what_if(body: AssignRequest, state: ApiState = Depends(api_state)) -> WhatIfResult:
     n = len(body.observations)
@@ -83,3 +110,15 @@ async def what_if(body: AssignRequest, state: ApiState = Depends(api_state)) -> 
     record = await call_source(state, "what_if", obs)
     fields = WhatIfResult.model_fields
     return WhatIfResult(**{k: v for k, v in json_safe(record).items() if k in fields})
+
+
+@router.post(
+    "/assign",
+    response_model=WhatIfResult,
+    summary="What-if: the policy the bank would assign to these initial observations (deprecated path)",
+    description=_deprecated(f"POST {WHAT_IF}"),
+    responses=WHAT_IF_RESPONSES,
+    deprecated=True,
+)
+async def what_if_deprecated(body: AssignRequest, state: ApiState = Depends(api_state)) -> WhatIfResult:
+    return await what_if(body, state)

@@ -7,7 +7,7 @@ from typing import Any, Iterator
 
 from fastapi import APIRouter, Depends, Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Histogram, generate_latest
-from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
 from ..deps import ERROR_RESPONSES, ApiState, api_state, current_snapshot, require_token, snapshot_json
@@ -76,31 +76,43 @@ async def metrics_prometheus(state: ApiState = Depends(api_state)) -> Response:
 
 
 class TrainingCollector(Collector):
-    """Gauges read from the latest snapshot at scrape time."""
+    """Training metrics read from the latest snapshot at scrape time (names and types: docs/api.md).
+
+    Running counts are counters (``_total``; take ``rate()`` for speeds), levels are gauges, rates of
+    success are ``_ratio`` gauges in 0..1, ids are labels (``covers_current_policy_info``)."""
 
     def __init__(self, cache: SnapshotCache) -> None:
         self.cache = cache
 
-    def collect(self) -> Iterator[GaugeMetricFamily]:
+    def collect(self) -> Iterator[Metric]:
         snap = self.cache.latest
         if snap is None:
             return
         t = training_metrics(snap)
         for name, value, doc in (
-            ("covers_iteration", t.iteration, "Update steps done."),
+            ("covers_iterations", t.iteration, "Training iterations (sample, assign, update, publish) done."),
             ("covers_episodes", t.episodes, "Episodes run."),
             ("covers_env_steps", t.env_steps, "Environment steps run."),
-            ("covers_env_steps_per_second", t.env_steps_per_s, "Environment steps per second."),
-            ("covers_ari", t.ari, "Adjusted Rand Index between policy ids and true task groups."),
-            ("covers_num_policies", t.num_policies, "Policies in the bank."),
-            ("covers_current_policy_id", t.current_policy_id, "Id of the policy being trained."),
+        ):
+            if value is not None:
+                yield CounterMetricFamily(name, doc, value=float(value))
+        for name, value, doc in (
+            ("covers_adjusted_rand_index", t.ari, "Adjusted Rand Index between policy ids and true task groups."),
+            ("covers_policies", t.num_policies, "Policies in the bank."),
             ("covers_snapshot_age_seconds", self.cache.age_s(), "Age of the state served."),
         ):
             if value is not None:
                 yield GaugeMetricFamily(name, doc, value=float(value))
+        if t.current_policy_id is not None:
+            info = GaugeMetricFamily(
+                "covers_current_policy_info", "The policy being trained (always 1; its id is the label).",
+                labels=["policy_id"],
+            )  # fmt: skip
+            info.add_metric([str(t.current_policy_id)], 1.0)
+            yield info
         for name, values, doc in (
-            ("covers_success", t.success, "Latest success rate per base task."),
-            ("covers_return", t.returns, "Latest average return per base task."),
+            ("covers_success_ratio", t.success, "Latest success rate per base task (0..1)."),
+            ("covers_episode_return", t.returns, "Latest average episode return per base task."),
         ):
             g = GaugeMetricFamily(name, doc, labels=["task"])
             for task, v in values.items():
@@ -108,10 +120,13 @@ class TrainingCollector(Collector):
                     g.add_metric([task], float(v))
             yield g
         yield from _evaluation_gauges(t.evaluation)
-        episodes = GaugeMetricFamily("covers_policy_episodes", "Episodes assigned per policy.", labels=["policy"])
-        buffers = GaugeMetricFamily(
-            "covers_policy_buffer_size", "Initial observations held per policy.", labels=["policy"]
+        episodes = CounterMetricFamily(
+            "covers_policy_episodes", "Episodes assigned per policy.", labels=["policy_id"]
         )
+        buffers = GaugeMetricFamily(
+            "covers_policy_buffer_observations", "Initial observations held in each policy's buffer.",
+            labels=["policy_id"],
+        )  # fmt: skip
         for p in snap.summary.get("policies", []):
             episodes.add_metric([str(p["policy_id"])], float(p.get("episodes_assigned", 0)))
             buffers.add_metric([str(p["policy_id"])], float(p.get("buffer_size", 0)))
@@ -120,14 +135,18 @@ class TrainingCollector(Collector):
 
 
 EVAL_SCALARS = (
-    ("covers_eval_average_success", "eval/average_success", "Evaluation: mean greedy success over groups seen."),
-    ("covers_eval_zero_shot_success", "eval/zero_shot_success", "Evaluation: greedy success on held-out (task, g)."),
-    ("covers_eval_average_forgetting", "eval/average_forgetting", "Evaluation: mean forgetting over groups."),
-)
+    ("covers_eval_average_success_ratio", "eval/average_success",
+     "Evaluation: mean greedy success over groups seen (0..1)."),
+    ("covers_eval_zero_shot_success_ratio", "eval/zero_shot_success",
+     "Evaluation: greedy success on held-out (task, g) pairs (0..1)."),
+    ("covers_eval_average_forgetting_ratio", "eval/average_forgetting",
+     "Evaluation: mean forgetting over groups (a difference of success rates)."),
+)  # fmt: skip
 EVAL_PER_TASK = (
-    ("covers_eval_success", "eval/success/", "Evaluation: greedy success per base task (bank's choice)."),
-    ("covers_eval_forgetting", "eval/forgetting/", "Evaluation: best earlier success minus latest, per base task."),
-)
+    ("covers_eval_success_ratio", "eval/success/", "Evaluation: greedy success per base task (bank's choice, 0..1)."),
+    ("covers_eval_forgetting_ratio", "eval/forgetting/",
+     "Evaluation: best earlier success minus latest, per base task."),
+)  # fmt: skip
 
 
 def _evaluation_gauges(evaluation: dict[str, Any]) -> Iterator[GaugeMetricFamily]:
