@@ -41,6 +41,8 @@ def live(ray_local, tmp_path_factory):
         "runtime.total_env_steps=1000000",
         "api.refresh_s=0.2",
         "api.request_timeout_s=5",
+        "network.channels=[2,4]",  # a narrow network: every actor builds it, the endpoints do not care
+        "network.hidden=8",
     )
     trainer = Trainer(cfg, log=lambda *_: None)
     trainer.start_policy(0)

@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -30,9 +31,30 @@ def _env() -> dict[str, str]:
     return env
 
 
-def _learn(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess:
+def _learn_process(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    """`covers-dist bench learn` in its own process (the peers start and stop Ray themselves)."""
     cmd = [EXE, "bench", "learn", "--config", "configs/smoke.yaml", *argv]
     return subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture
+def learn(capsys, monkeypatch):
+    """``learn(*ARGV)``: `covers-dist bench learn --config configs/smoke.yaml ARGV` in this process
+    (the CLI's main, as the console script calls it); its exit status, stdout and stderr."""
+    from covers_dist.cli import main
+
+    monkeypatch.chdir(ROOT)
+
+    def run(*argv: str) -> SimpleNamespace:
+        capsys.readouterr()
+        try:
+            code = main(["bench", "learn", "--config", "configs/smoke.yaml", *argv])
+        except SystemExit as e:  # usage errors: exit status 2
+            code = e.code
+        out = capsys.readouterr()
+        return SimpleNamespace(returncode=code, stdout=out.out, stderr=out.err)
+
+    return run
 
 
 # ---- argument errors -----------------------------------------------------------------------------
@@ -48,8 +70,8 @@ def _learn(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess:
         (["--keep-runs"], ["--keep-runs", "--out"]),
     ],
 )
-def test_bad_arguments_are_one_line_errors(argv, words):
-    res = _learn(*argv, timeout=120)
+def test_bad_arguments_are_one_line_errors(learn, argv, words):
+    res = learn(*argv)
     assert res.returncode == 2, res.stderr
     err = res.stderr.strip()
     assert len(err.splitlines()) == 1, err
@@ -59,11 +81,11 @@ def test_bad_arguments_are_one_line_errors(argv, words):
 
 
 # ---- a short real run ------------------------------------------------------------------------------
-def test_short_serial_covers_run_writes_curves(tmp_path):
+def test_short_serial_covers_run_writes_curves(tmp_path, learn):
     out = tmp_path / "out"
-    res = _learn("--task", "reach", "--contenders", "covers", "--serial", "--budget-steps", "2000",
-                 "--eval-every", "1000", "--eval-episodes", "2", "--set", "ppo.epochs=1", "--json", "--out", str(out),
-                 "--keep-runs")  # fmt: skip
+    res = learn("--task", "reach", "--contenders", "covers", "--serial", "--budget-steps", "2000",
+                "--eval-every", "1000", "--eval-episodes", "2", "--set", "ppo.epochs=1", "--set", "network.channels=[2,4]",
+                "--set", "network.hidden=8", "--json", "--out", str(out), "--keep-runs")  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads(res.stdout.strip().splitlines()[-1])
     assert result["task"] == "reach" and result["group"] == "D4" and result["transforms"] == D4
@@ -104,8 +126,8 @@ def test_short_serial_covers_run_writes_curves(tmp_path):
     assert (kept / "config.yaml").is_file() and (kept / "episodes.jsonl").is_file()
     assert any((kept / "checkpoints").iterdir())
     assert [m["env_steps"] for m in map(json.loads, (kept / "metrics.jsonl").read_text().splitlines())][-1] >= 2000
-    again = _learn("--task", "reach", "--contenders", "covers", "--serial", "--budget-steps", "2000",
-                   "--out", str(out), "--keep-runs", timeout=120)  # fmt: skip
+    again = learn("--task", "reach", "--contenders", "covers", "--serial", "--budget-steps", "2000",
+                  "--out", str(out), "--keep-runs")  # fmt: skip
     assert again.returncode == 2 and "already holds a run" in again.stderr, again.stderr
 
 
@@ -206,7 +228,7 @@ def test_covers_training_does_not_depend_on_when_it_is_evaluated(tmp_path, one_t
     for name, evaluate in (("plain", False), ("evaluated", True)):
         cfg = load_config("configs/smoke.yaml", [
             "env.tasks=[reach]", "env.episodes_per_task=1", "runtime.serial=true", "ppo.epochs=1",
-            "runtime.pipeline=true", f"runtime.run_dir={tmp_path / name}",
+            "runtime.pipeline=true", "network.channels=[2,4]", "network.hidden=8", f"runtime.run_dir={tmp_path / name}",
         ])  # fmt: skip
         contender = _CoversContender(cfg)
         evaluator = GroupEvaluation(cfg, "reach", D4[:2], episodes=1, seed=cfg.seed)
@@ -327,7 +349,7 @@ def test_image_only_task_draws_transforms_from_the_reset_seed():
 def test_short_peer_runs_on_equal_terms():
     """RLlib on the project's CNN twin and SB3's PPO, one iteration each: the same PPO settings as
     covers-dist, read back from the built algorithms, and the same evaluation."""
-    res = _learn("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every", "400",
+    res = _learn_process("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every", "400",
                  "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=64",
                  "--json", timeout=400)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
@@ -361,14 +383,14 @@ def _entry(reached: bool, steps: int | None, wall: float | None) -> dict:
     return {"reached": reached, "env_steps_to_threshold": steps, "wall_s_to_threshold": wall, "curve": curve}
 
 
-def test_merge_joins_separate_invocations_and_recomputes_ratios(tmp_path):
+def test_merge_joins_separate_invocations_and_recomputes_ratios(tmp_path, learn):
     a = tmp_path / "a.json"
     b = tmp_path / "b.json"
     a.write_text(json.dumps(_result({"covers": _entry(True, 1000, 10.0)}, ratios={})))
     b.write_text(json.dumps(_result({"cnn": _entry(True, 4000, 20.0), "rllib": _entry(True, 2000, 40.0)},
                                     budget={"env_steps": 9000, "minutes": 3.0}, seed=1, ratios={})))  # fmt: skip
     out = tmp_path / "out"
-    res = _learn("--merge", str(a), str(b), "--json", "--out", str(out), timeout=120)
+    res = learn("--merge", str(a), str(b), "--json", "--out", str(out))
     assert res.returncode == 0, res.stderr
     merged = json.loads(res.stdout.strip().splitlines()[-1])
     assert list(merged["contenders"]) == ["covers", "cnn", "rllib"]
@@ -397,12 +419,12 @@ def test_merge_joins_separate_invocations_and_recomputes_ratios(tmp_path):
         (_result({"cnn": {**_entry(False, None, None), "curve": [None]}}), ["curve point 0", "env_steps"]),
     ],
 )
-def test_merge_refuses_results_that_do_not_compare(tmp_path, second, words):
+def test_merge_refuses_results_that_do_not_compare(tmp_path, learn, second, words):
     a = tmp_path / "a.json"
     b = tmp_path / "b.json"
     a.write_text(json.dumps(_result({"covers": _entry(True, 1000, 10.0)})))
     b.write_text(json.dumps(second))
-    res = _learn("--merge", str(a), str(b), timeout=120)
+    res = learn("--merge", str(a), str(b))
     assert res.returncode == 2, res.stderr
     err = res.stderr.strip()
     assert len(err.splitlines()) == 1 and err.startswith("covers-dist bench learn: --merge:"), err
@@ -411,19 +433,19 @@ def test_merge_refuses_results_that_do_not_compare(tmp_path, second, words):
     assert res.stdout == ""
 
 
-def test_merge_checks_the_first_result_too(tmp_path):
+def test_merge_checks_the_first_result_too(tmp_path, learn):
     a = tmp_path / "a.json"
     b = tmp_path / "b.json"
     a.write_text(json.dumps({"contenders": {}}))
     b.write_text(json.dumps(_result({"covers": _entry(True, 1000, 10.0)})))
-    res = _learn("--merge", str(a), str(b), timeout=120)
+    res = learn("--merge", str(a), str(b))
     assert res.returncode == 2 and "not a bench learn result" in res.stderr and "a.json" in res.stderr, res.stderr
 
 
-def test_merge_names_a_missing_or_corrupt_file(tmp_path):
+def test_merge_names_a_missing_or_corrupt_file(tmp_path, learn):
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     for path, words in ((tmp_path / "missing.json", ["no such file", "missing.json"]), (bad, ["cannot read", "bad.json"])):
-        res = _learn("--merge", str(path), timeout=120)
+        res = learn("--merge", str(path))
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
         assert all(w in res.stderr for w in words), res.stderr

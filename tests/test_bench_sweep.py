@@ -6,8 +6,13 @@ import json
 import signal
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
 
 from covers_dist.bench.sweep import summarize, table
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _rows(successes, steps_per_iteration=400, seconds_per_iteration=2.0):
@@ -34,22 +39,27 @@ def test_summary_finds_the_first_window_at_0_9_and_the_fifths():
                                  "runs": [{"variant": "a", "seed": 0, "wall_s": 1.0, **s}]})  # fmt: skip
 
 
-def test_a_tiny_sweep_runs_each_variant_and_refuses_a_bad_one(tmp_path):
-    cmd = [sys.executable, "-m", "covers_dist", "bench", "sweep", "--config", "configs/smoke.yaml", "--task", "reach",
-           "--steps", "800", "--serial", "--json", "--out", str(tmp_path)]  # fmt: skip
-    done = subprocess.run([*cmd, "--variant", "", "--variant", "ppo.reward_norm=none"], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr[-3000:]
-    report = json.loads(done.stdout.strip().splitlines()[-1])
+def test_a_tiny_sweep_runs_each_variant_and_refuses_a_bad_one(tmp_path, capsys, monkeypatch):
+    """In this process (the CLI's main, as the console script calls it); serial runs, no Ray."""
+    from covers_dist.cli import main
+
+    monkeypatch.chdir(ROOT)
+    argv = ["bench", "sweep", "--config", "configs/smoke.yaml", "--task", "reach", "--steps", "800", "--serial",
+            "--set", "network.channels=[2,4]", "--set", "network.hidden=8", "--json", "--out", str(tmp_path)]  # fmt: skip
+    assert main([*argv, "--variant", "", "--variant", "ppo.reward_norm=none"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert [r["variant"] for r in report["runs"]] == ["(as configured)", "ppo.reward_norm=none"]
     assert all(r["iterations"] == 2 and 0.0 <= r["final"] <= 1.0 for r in report["runs"])
     assert (tmp_path / "run-02" / "metrics.jsonl").is_file()
-    bad = subprocess.run([*cmd, "--variant", "ppo.reward_norm=sometimes"], capture_output=True, text=True)
-    assert bad.returncode != 0 and "reward_norm" in bad.stderr
+    with pytest.raises(SystemExit) as bad:  # refused before any run starts
+        main([*argv, "--variant", "ppo.reward_norm=sometimes"])
+    assert bad.value.code != 0 and "reward_norm" in str(bad.value.code)
 
 
 def test_a_signal_stops_the_whole_sweep_not_only_the_run_in_progress(tmp_path):
     cmd = [sys.executable, "-m", "covers_dist", "bench", "sweep", "--config", "configs/smoke.yaml", "--task", "reach",
-           "--steps", "40000", "--serial", "--json", "--out", str(tmp_path),
+           "--steps", "40000", "--serial", "--set", "network.channels=[2,4]", "--set", "network.hidden=8",
+           "--json", "--out", str(tmp_path),
            "--variant", "", "--variant", "ppo.lr=1e-3", "--variant", "ppo.epochs=1"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -90,6 +90,15 @@ def runs(tmp_path_factory, one_torch_thread):
     return root / "on", root / "off"
 
 
+@pytest.fixture(scope="module")
+def equi_run(tmp_path_factory, one_torch_thread):
+    """The "on" run's config with one shared equivariant policy (runtime.method=equi): the other
+    method of the comparisons (read-only there)."""
+    equi = tmp_path_factory.mktemp("eval-equi") / "equi"
+    train(equi, "runtime.method=equi", "eval.every_iterations=2", "eval.tasks=[reach,push]")
+    return equi
+
+
 # ---- metrics against hand-computed answers -------------------------------------------------------
 def row(task, g, status, success, ret=0.0, oracle=None, stochastic=None):
     results = {"greedy/agnostic": {"success": success, "return": ret}}
@@ -650,21 +659,20 @@ def test_ray_evaluation_executors_give_the_local_pass(runs, ray_local):
 
 
 # ---- methods side by side (`covers-dist compare`) ------------------------------------------------
-def test_compare_puts_methods_side_by_side_and_refuses_unlike_runs(runs, tmp_path, capsys):
+def test_compare_puts_methods_side_by_side_and_refuses_unlike_runs(runs, equi_run, tmp_path, capsys):
     import dataclasses
 
     from covers_dist.commands.compare import load_runs
     from covers_dist.evaluation.compare import check_comparable
 
     on, off = runs
-    equi = tmp_path / "equi"
-    train(equi, "runtime.method=equi", "eval.every_iterations=2", "eval.tasks=[reach,push]")
-    before = snapshot(on)
+    equi = equi_run
+    before = snapshot(on), snapshot(equi)
     out = tmp_path / "cmp"
     capsys.readouterr()
     assert main(["compare", str(on), str(equi), "--out", str(out), "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
-    assert snapshot(on) == before  # read-only
+    assert (snapshot(on), snapshot(equi)) == before  # read-only
     assert [r["label"] for r in data["runs"]] == ["covers", "equi"]
     held = sorted([r["task"], r["g"]] for r in read_passes(on)[-1]["pairs"] if r["status"] == "held_out")
     assert data["tasks"] == TASKS and data["held_out"] == held and held
@@ -697,14 +705,13 @@ def test_compare_puts_methods_side_by_side_and_refuses_unlike_runs(runs, tmp_pat
         check_comparable([a, dataclasses.replace(b, passes=[{**b.passes[-1], "pairs": pairs}])])
 
 
-def test_compare_across_seeds_averages_each_method_over_its_seeds(runs, tmp_path, capsys):
+def test_compare_across_seeds_averages_each_method_over_its_seeds(runs, equi_run, tmp_path, capsys):
     """Seeds hold out different pairs: a plain compare refuses them and points at --across-seeds,
     which keeps each run's own held-out pairs and adds mean +- std per method over its seeds."""
     import shutil
 
     on, _ = runs
-    equi = tmp_path / "equi"
-    train(equi, "runtime.method=equi", "eval.every_iterations=2", "eval.tasks=[reach,push]")
+    equi = equi_run
     s1 = tmp_path / "covers-s1"
     train(s1, "seed=1", "eval.every_iterations=2", "eval.tasks=[reach,push]")
     held = {d: sorted([r["task"], r["g"]] for r in read_passes(d)[-1]["pairs"] if r["status"] == "held_out") for d in (on, s1)}

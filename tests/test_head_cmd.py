@@ -40,7 +40,7 @@ def _tiny_config(tmp_path):
     cfg["env"].update(episodes_per_task=8, max_episode_steps=20)
     cfg["clustering"]["update_every"] = 8
     cfg["ppo"].update(epochs=1, minibatch_size=80)
-    cfg["runtime"].update(total_env_steps=480, log_every_s=0.5)
+    cfg["runtime"].update(total_env_steps=160, log_every_s=0.5)  # one iteration: the job trains and checkpoints
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path

@@ -14,7 +14,7 @@ from covers_dist.runtime.learner import PolicyLearner, live_state_path
 from covers_dist.runtime.processes import list_processes
 from covers_dist.runtime.rollout import EpisodeSpec, RolloutWorker
 
-from test_pipeline import _run, _same_weights
+from test_pipeline import _same_weights
 from test_runtime_serial import assignments, tiny_cfg
 
 
@@ -183,8 +183,8 @@ def _wait_for_new_pid(run_dir, role, old_pid, timeout_s=90):
     raise AssertionError(f"no restarted {role} within {timeout_s} s")
 
 
-def test_learner_killed_during_updates_ends_where_the_clean_run_ends(ray_local, tmp_path):
-    serial = _run(tiny_cfg(tmp_path / "s", "runtime.total_env_steps=1600"))
+def test_learner_killed_during_updates_ends_where_the_clean_run_ends(ray_local, tiny_serial_run, tmp_path):
+    serial = tiny_serial_run[:2]  # the clean run: the same config and 1600 env steps, serial
     cfg = tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false")
     trainer = Trainer(cfg, log=lambda *_: None)
     trainer.start_policy(0)

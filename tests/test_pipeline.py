@@ -31,10 +31,10 @@ def _same_weights(a, b):
             assert torch.equal(a[pid][name], b[pid][name]), (pid, name)
 
 
-def test_pipelined_rows_report_the_previous_update_and_differ_from_sequential(tmp_path):
-    _run(tiny_cfg(tmp_path / "p", "runtime.total_env_steps=1600", "runtime.pipeline=true"))
+def test_pipelined_rows_report_the_previous_update_and_differ_from_sequential(tiny_serial_run, tmp_path):
+    _, _, piped_dir = tiny_serial_run  # 1600 env steps, runtime.pipeline=true (the default)
     _run(tiny_cfg(tmp_path / "s", "runtime.total_env_steps=1600", "runtime.pipeline=false"))
-    piped, seq = _losses(tmp_path / "p"), _losses(tmp_path / "s")
+    piped, seq = _losses(piped_dir), _losses(tmp_path / "s")
     assert piped[0] is None and all(v is not None for v in piped[1:])  # nothing finished yet in iteration 1
     assert all(v is not None for v in seq)
     # the first update is the same computation (same data, same weights); later ones see lagged samples
@@ -53,8 +53,8 @@ def test_pipelined_run_resumed_from_a_checkpoint_with_an_update_in_flight_equals
     assert _losses(tmp_path / "cut")[2:] == _losses(tmp_path / "full")[2:]
 
 
-def test_ray_pipelined_run_equals_the_serial_pipelined_run(ray_local, tmp_path):
-    serial = _run(tiny_cfg(tmp_path / "s", "runtime.total_env_steps=1200"))
-    distributed = _run(tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1200", "runtime.serial=false"))
+def test_ray_pipelined_run_equals_the_serial_pipelined_run(ray_local, tiny_serial_run, tmp_path):
+    serial = tiny_serial_run[:2]  # the same config, 1600 env steps, in this process
+    distributed = _run(tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false"))
     assert distributed[0] == serial[0]
     _same_weights(distributed[1], serial[1])

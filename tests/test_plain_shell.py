@@ -1,6 +1,6 @@
 """Every ``covers-dist`` command from a plain shell: no MUJOCO_GL, PYOPENGL_PLATFORM or RAY_*
-variable, PATH=/usr/bin:/bin, a fresh HOME. Each subcommand's ``--help``, and real short runs of
-the commands that render, train or serve cheaply."""
+variable, PATH=/usr/bin:/bin, a fresh HOME. The console script's ``--help`` and real short runs of
+the commands that render, train or serve cheaply; each subcommand's ``--help`` in this process."""
 
 import argparse
 import json
@@ -13,12 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from covers_dist.cli import build_parser
+from covers_dist.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
 EXE = str(Path(sys.executable).parent / "covers-dist")
 SMOKE = str(ROOT / "configs" / "smoke.yaml")
-TINY_TRAIN = ["--set", "runtime.total_env_steps=400", "--set", "runtime.log_every_s=1000"]
+TINY_TRAIN = ["--set", "runtime.total_env_steps=400", "--set", "runtime.log_every_s=1000", "--set", "network.channels=[2,4]",
+              "--set", "network.hidden=8"]
 
 
 def _subcommands() -> list[list[str]]:
@@ -58,10 +59,21 @@ def test_every_subcommand_is_discovered():
 
 
 @pytest.mark.parametrize("command", _subcommands(), ids=" ".join)
-def test_help(plain, command):
-    res = plain(*command, "--help", timeout=60)
+def test_help(command, capsys):
+    """Every subcommand's --help, in this process (the CLI's main, as the console script calls it)."""
+    with pytest.raises(SystemExit) as exc:
+        main([*command, "--help"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.startswith(f"usage: covers-dist {' '.join(command)}")
+
+
+def test_the_console_script_starts_in_a_plain_shell(plain):
+    """The installed console script, not the CLI's main in this process: it starts, discovers every
+    subcommand and prints its help (the commands below run it with real work)."""
+    res = plain("--help", timeout=60)
     assert res.returncode == 0, res.stderr
-    assert res.stdout.startswith(f"usage: covers-dist {' '.join(command)}")
+    assert res.stdout.startswith("usage: covers-dist")
+    assert all(c[0] in res.stdout for c in _subcommands())
 
 
 def test_bench_render_draws_meta_world_with_gl(plain):

@@ -19,6 +19,8 @@ TINY = [
     "clustering.update_every=8",
     "ppo.epochs=1",
     "ppo.minibatch_size=200",
+    "network.channels=[2,4]",  # narrow: the loop's tests do not depend on the network's width
+    "network.hidden=8",
     "runtime.log_every_s=1000",
 ]
 
@@ -31,12 +33,8 @@ def assignments(trainer):
     return [(r["policy_id"], r["decision"]) for r in trainer.backend.call_clustering("assignments", 0, 1000)]
 
 
-def test_serial_loop_runs_phases_and_writes_metrics(tmp_path):
-    cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=1600", "runtime.checkpoint_every=2")
-    trainer = Trainer(cfg, log=lambda *_: None)
-    result = trainer.run()
-    trainer.close()
-    assert result["status"] == "finished"
+def test_serial_loop_runs_phases_and_writes_metrics(tiny_serial_run):
+    *_, tmp_path = tiny_serial_run  # 1600 env steps of the tiny config (conftest.py), finished
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows] == [1, 2, 3, 4]
     assert rows[-1]["env_steps"] == 1600
@@ -48,16 +46,17 @@ def test_serial_loop_runs_phases_and_writes_metrics(tmp_path):
     verify_checkpoint(list_checkpoints(tmp_path)[-1])
 
 
-def test_same_seed_same_assignments_and_losses(tmp_path):
+def test_same_seed_same_assignments_and_losses(tiny_serial_run, tmp_path):
+    """A second run of the same config and seed (the first: conftest.py's, made earlier in this process)."""
+    cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=1600")
+    trainer = Trainer(cfg, log=lambda *_: None)
+    trainer.run()
+    trainer.close()
     runs = []
-    for name in ("a", "b"):
-        cfg = tiny_cfg(tmp_path / name, "runtime.total_env_steps=1200")
-        trainer = Trainer(cfg, log=lambda *_: None)
-        trainer.run()
-        trainer.close()
-        rows = [json.loads(line) for line in (tmp_path / name / "metrics.jsonl").read_text().splitlines()]
-        runs.append((assignments(trainer), [r.get("ppo/policy_loss") for r in rows], [r["return/" + t] for r in rows for t in ["reach", "push", "avoid"] if "return/" + t in r]))
-    assert runs[0] == runs[1]
+    for recorded, run_dir in ((tiny_serial_run[0], tiny_serial_run[2]), (assignments(trainer), tmp_path)):
+        rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+        runs.append((recorded, [r.get("ppo/policy_loss") for r in rows], [r["return/" + t] for r in rows for t in ["reach", "push", "avoid"] if "return/" + t in r]))
+    assert len(runs[0][1]) == 4 and runs[0] == runs[1]
 
 
 def test_resume_continues_with_the_same_bank_and_counters(tmp_path):

@@ -1,23 +1,54 @@
-"""The smoke config end to end on Ray (2 CPUs): one policy per toy group, and learning."""
+"""The smoke config end to end on Ray (2 CPUs): one policy per toy group, and learning.
+
+The default suite runs one round of the three groups and the first iteration of the next round:
+every group gets its own policy, and the group that comes back is recalled (not given a new
+policy). The full config's run, where the reach group's success rises, is marked slow; that this
+PPO learns a toy task is the default suite's tests/test_learning.py."""
 
 import json
 
 import numpy as np
+import pytest
 
 from covers_dist.config import load_config
 from covers_dist.runtime.driver import Trainer
 
 
-def test_smoke_stream_clusters_by_group_and_improves(ray_local, tmp_path):
-    cfg = load_config("configs/smoke.yaml", [f"runtime.run_dir={tmp_path}", "runtime.log_every_s=15"])
+def _run(tmp_path, *overrides):
+    cfg = load_config("configs/smoke.yaml", [f"runtime.run_dir={tmp_path}", "runtime.log_every_s=15", *overrides])
     trainer = Trainer(cfg)
-    result = trainer.run()
-    trainer.close()
+    try:
+        result = trainer.run()
+        records = trainer.backend.call_clustering("assignments", 0, 10**6)
+    finally:
+        trainer.close()
     assert result["status"] == "finished"
     assert result["num_policies"] == 3, result["policy_counts"]
     assert result["ari"] >= 0.9
     episodes = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
     assert len(episodes) == cfg.runtime.total_env_steps // cfg.env.max_episode_steps
+    return cfg, records, episodes
+
+
+def test_one_round_gives_each_group_a_policy_and_recalls_a_returning_group(ray_local, tmp_path):
+    base = load_config("configs/smoke.yaml")
+    per_iteration = base.clustering.update_every * base.env.max_episode_steps
+    one_round = len(base.env.tasks) * base.env.episodes_per_task * base.env.max_episode_steps
+    cfg, records, episodes = _run(tmp_path, f"runtime.total_env_steps={one_round + per_iteration}")
+    assert sorted({e["task"] for e in episodes[: one_round // cfg.env.max_episode_steps]}) == sorted(cfg.env.tasks)
+    decisions = [r["decision"] for r in records]
+    last = records[-1]
+    # the next round's first group was seen in the first round: its policy is recalled, no new one
+    assert last["decision"] == "recall", decisions
+    returning = episodes[-1]["task"]
+    first_policy = next(e["assigned_policy"] for e in episodes if e["task"] == returning)
+    assert last["policy_id"] == first_policy, (returning, records)
+
+
+@pytest.mark.slow
+def test_smoke_stream_clusters_by_group_and_improves(ray_local, tmp_path):
+    """The whole smoke config (10 rounds, about 4 min on 2 cores)."""
+    cfg, _, episodes = _run(tmp_path)
     gains = {}
     for task in cfg.env.tasks:
         success = np.array([e["success"] for e in episodes if e["task"] == task])
