@@ -9,7 +9,7 @@ from covers_dist.cli import main
 
 
 def test_projection_follows_the_time_model():
-    measured = {"sample_steps_per_s": 400.0, "workers": 2, "phase_assign_s": 0.1, "phase_publish_s": 0.1}
+    measured = {"sample_steps_per_s": 400.0, "workers": 2, "phase_assign_s": 0.1, "phase_record_s": 0.1}
     # 800 steps per iteration, 16 workers at 200 steps/s each: 0.25 s of sampling
     p = project(measured, 800, 16, update_samples_per_s=3200.0, epochs=2)  # 0.5 s of updating
     assert p["per_worker_steps_per_s"] == 200.0 and p["sample_s"] == 0.25 and p["update_s"] == 0.5

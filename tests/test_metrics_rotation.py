@@ -120,7 +120,7 @@ def _write_run(run, iterations, writer):
 
 
 def test_metrics_writer_rotates_and_every_reader_sees_all_kept_rows(tmp_path):
-    from covers_dist.commands.eval import _episode_rows
+    from covers_dist.runtime.evaluation import _episode_rows
     from covers_dist.commands.plot import _read_jsonl, make_plots
 
     writer = MetricsWriter(tmp_path, tensorboard=False, rotate_mb=1_000 / 2**20, keep=100)
