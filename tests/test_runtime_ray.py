@@ -4,7 +4,6 @@ mode, and fault tolerance of the rollout workers and the clustering actor."""
 import threading
 import time
 
-import pytest
 
 from covers_dist.runtime.driver import Trainer
 
