@@ -108,14 +108,14 @@ class Trainer:
                 record = self._assign(self.backend.first_frames(plan), _in_order(plan))
             acting = int(record["policy_id"])
         with self._phase("sample"):
-            first_frames, summaries, episodes = self._sample(plan, acting)
+            firsts, summaries, episodes = self._sample(plan, acting)
         stats: dict[str, Any] = {}
         if self.weights.pending is not None:  # pipelined: the previous update ran beside the sampling
             with self._phase("update_wait"):
                 stats = self.weights.finish_update()
         if not assign_first:
             with self._phase("assign"):
-                record = self._assign(first_frames, summaries)
+                record = self._assign(_stacked(firsts), summaries)
         policy = int(record["policy_id"])
         with self._phase("update_submit"):  # the serial backend runs the update here
             self.weights.submit_update(policy, episodes)
@@ -135,16 +135,15 @@ class Trainer:
         n = self.cfg.runtime.num_workers
         return [specs[w::n] for w in range(n)]
 
-    def _sample(self, plan: list[list[EpisodeSpec]], policy_id: int) -> tuple[dict[str, np.ndarray], list, Any]:
-        """Run the plan with ``policy_id``'s published weights: the episodes' first frames (stacked,
-        in episode order), their summaries (in episode order) and the episodes for the learner."""
+    def _sample(self, plan: list[list[EpisodeSpec]], policy_id: int) -> tuple[list[dict], list, Any]:
+        """Run the plan with ``policy_id``'s published weights: the episodes' first frames and their
+        summaries (both in episode order) and the episodes for the learner."""
         version, handle = self.weights.versions[policy_id], self.weights.handles[policy_id]
         firsts, summaries, episodes = self.backend.collect_sample(
             self.backend.submit_sample(plan, policy_id, version, handle)
         )
         order = sorted(range(len(summaries)), key=lambda i: summaries[i]["episode_index"])
-        stacked = {key: np.concatenate([firsts[i][key] for i in order]) for key in ("image", "proprio")}
-        return stacked, [summaries[i] for i in order], episodes
+        return [firsts[i] for i in order], [summaries[i] for i in order], episodes
 
     def _assign(self, obs: dict[str, np.ndarray], episodes: list[Any]) -> dict[str, Any]:
         """The clustering service's assignment of a batch (episode specs or summaries, in order);
@@ -261,6 +260,11 @@ class Trainer:
 
     def close(self) -> None:
         self.backend.shutdown()
+
+
+def _stacked(firsts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Per-episode first frames as one batch (only the assignment after sampling needs them)."""
+    return {key: np.concatenate([f[key] for f in firsts]) for key in ("image", "proprio")}
 
 
 def _in_order(plan: list[list[EpisodeSpec]]) -> list[EpisodeSpec]:
