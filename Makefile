@@ -45,8 +45,12 @@ demo: install
 	else $(VENV)/bin/covers-dist train --config configs/demo.yaml --run-dir runs/demo; fi
 	$(VENV)/bin/covers-dist plot runs/demo
 
+# two pytest-xdist workers, a test module each at a time, longest modules first (tests/conftest.py);
+# PYTEST_WORKERS=0 runs the suite in this process only; PYTEST_ARGS adds options (e.g. --durations=25)
+PYTEST_WORKERS ?= 2
+PYTEST_ARGS ?=
 test: install
-	$(VENV)/bin/python -m pytest
+	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
 
 test-slow: install
 	$(VENV)/bin/python -m pytest -m slow

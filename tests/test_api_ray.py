@@ -215,3 +215,16 @@ def test_lost_actor_gives_503_not_500(live):
     assert r.status_code == 503 and "clustering actor" in r.json()["detail"]
     assert c.get("/v1/assignments/latest").status_code == 200  # the last snapshot is still served
     assert wait_until(lambda: c.get("/readyz").status_code == 503, 30)
+
+
+def test_a_process_joined_to_one_cluster_refuses_another_address(ray_local):
+    """``serve --address`` in a process already connected to Ray names the address that does not
+    answer, and refuses one that differs from the cluster it is connected to, rather than quietly
+    looking for the actor in the wrong cluster; the address it is on (or ``localhost:``) works."""
+    from covers_dist.api.sources import SourceUnavailable, connect_ray
+
+    current = ray_local.get_runtime_context().gcs_address
+    with pytest.raises(SourceUnavailable, match="no Ray cluster answers at 127.0.0.1:1"):
+        connect_ray("127.0.0.1:1")
+    assert connect_ray(current) is ray_local and connect_ray(current.replace("127.0.0.1:", "localhost:")) is ray_local
+    assert connect_ray(None) is ray_local

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 from covers_dist.commands.head import head_processes
@@ -52,6 +53,11 @@ def test_the_documented_local_job_submit_recipe_works_as_written(tmp_path):
     # only the config (a tiny stream) and the run directory change; every command stays as written
     script = script.replace("configs/smoke.yaml", str(_tiny_config(tmp_path)))
     script = script.replace('"$PWD/runs/smoke-job"', str(run_dir))
+    # with the head up: a second start is refused (checked here, where a head is running anyway)
+    stop = "covers-dist head stop"
+    assert script.count(stop) == 1
+    second = tmp_path / "second-start.err"
+    script = script.replace(stop, f"! covers-dist head start --port 0 --dashboard-port 0 2> {second}\n{stop}")
     state = tmp_path / "state"
     done = subprocess.run(["bash", "-e", "-c", script], cwd=ROOT, env=_env(state), capture_output=True, text=True,
                           timeout=900)  # fmt: skip
@@ -62,39 +68,34 @@ def test_the_documented_local_job_submit_recipe_works_as_written(tmp_path):
         assert "covers-dist head: running" in done.stdout and "stopped" in done.stdout
         assert any((run_dir / "checkpoints").iterdir())  # the job trained and checkpointed
         assert temp and head_processes(temp.group(1)) == []  # nothing of the head is left
+        assert "already running" in second.read_text()
     finally:
         if (state / "head.json").is_file():
             _head(state, "stop")
 
 
-def test_head_refuses_bad_input_and_a_second_start(tmp_path):
-    state = tmp_path / "state"
-    assert _head(state, "status").returncode == 3
-    stop = _head(state, "stop")
-    assert stop.returncode == 3 and "nothing to stop" in stop.stderr
-    assert _head(state, "env").returncode == 3
-    bad = _head(state, "start", "--dashboard-port", "70000")
-    assert bad.returncode != 0 and "0..65535" in bad.stderr
-    started = _head(state, "start", "--port", "0", "--dashboard-port", "0", "--num-cpus", "1")
-    try:
-        assert started.returncode == 0, started.stdout + started.stderr
-        assert _head(state, "status").returncode == 0
-        again = _head(state, "start", "--port", "0", "--dashboard-port", "0")
-        assert again.returncode != 0 and "already running" in again.stderr
-        env = _head(state, "env").stdout
-        assert "RAY_AUTH_MODE=token" in env and "RAY_ADDRESS=http://127.0.0.1:" in env
-    finally:
-        stopped = _head(state, "stop")
-    assert stopped.returncode == 0, stopped.stderr
-    assert _head(state, "status").returncode == 3
+def test_head_refuses_bad_input(tmp_path, capsys):
+    """Without a head (in this process: argument and state checks start nothing): status, stop and
+    env answer 3 and say why; a bad port is refused before anything starts. (A second start while
+    a head runs: the recipe test above.)"""
+    from covers_dist.cli import main
+
+    state = ["--state-dir", str(tmp_path / "state")]
+    assert main(["head", "status", *state]) == 3
+    assert main(["head", "stop", *state]) == 3 and "nothing to stop" in capsys.readouterr().err
+    assert main(["head", "env", *state]) == 3
+    with pytest.raises(SystemExit, match=r"0\.\.65535"):
+        main(["head", "start", *state, "--dashboard-port", "70000"])
 
 
 def test_a_port_in_use_is_named(tmp_path):
     import socket
 
+    from covers_dist.cli import main
+
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        taken = _head(tmp_path / "state", "start", "--dashboard-port", str(port))
-    assert taken.returncode != 0 and f"port {port} (--dashboard-port) is in use" in taken.stderr
+        with pytest.raises(SystemExit, match=rf"port {port} \(--dashboard-port\) is in use"):
+            main(["head", "start", "--state-dir", str(tmp_path / "state"), "--dashboard-port", str(port)])

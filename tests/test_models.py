@@ -484,3 +484,27 @@ def test_bf16_update_forward_keeps_log_probs_in_fp32(nets, kind):
     assert logp.dtype == torch.float32
     logratio = logp.numpy() - lp_rollout
     assert np.abs(logratio).max() < 1e-3, np.abs(logratio).max()
+
+
+def test_in_memory_clebsch_gordan_cache_gives_escnn_values_as_copies():
+    """The in-memory cache in front of escnn's on-disk one returns exactly the disk values, as
+    copies: a caller writing into the array it got does not change what the next caller gets."""
+    import numpy as np
+
+    from covers_dist.models._escnn_compat import import_escnn_nn
+
+    import_escnn_nn()
+    import escnn.group._clebsh_gordan as cg
+    from escnn.group import dihedral_group
+
+    group = dihedral_group(4)
+    irreps = [irr.id for irr in group.irreps()]
+    remembered = cg._clebsh_gordan_tensor
+    assert getattr(remembered, "_covers_in_memory", False)
+    m, n = irreps[-1], irreps[-1]
+    for j, _ in cg._find_tensor_decomposition(m, n, "DihedralGroup", **group._keys):
+        first = remembered(m, n, j, "DihedralGroup", **group._keys)
+        expected = remembered.__wrapped__(m, n, j, "DihedralGroup", **group._keys)
+        np.testing.assert_array_equal(first, expected)
+        first[...] = 7.0
+        np.testing.assert_array_equal(remembered(m, n, j, "DihedralGroup", **group._keys), expected)

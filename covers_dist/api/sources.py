@@ -137,6 +137,13 @@ def connect_ray(address: str | None) -> Any:
 
     with _RAY_LOCK:
         if ray.is_initialized():
+            current = ray.get_runtime_context().gcs_address
+            same = address and address.replace("localhost:", "127.0.0.1:") == current
+            if address and address != "auto" and "://" not in address and not same:
+                _check_reachable(address)  # an address that does not answer says so, connected or not
+                raise SourceUnavailable(
+                    f"this process is connected to the Ray cluster at {current}; it cannot also join {address}"
+                )
             return ray
         _check_reachable(address)
         if address and address.split(":")[0] in ("127.0.0.1", "localhost"):

@@ -102,11 +102,11 @@ def run(args: argparse.Namespace) -> int:
         except (SourceUnavailable, ConnectionError) as e:
             raise SystemExit(f"covers-dist serve: {e}") from None
         print(f"covers-dist serve: clustering actor {name!r} at {args.address}", flush=True)
-    server = ApiServerThread(create_app(cfg, source), cfg.api.host, cfg.api.port, log_level="warning").start()
-    print(f"{LISTENING}{server.url} (docs: {server.url}/docs)", flush=True)
-    done = threading.Event()
+    done = threading.Event()  # handlers first: a signal sent as soon as the address is printed stops cleanly
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
+    server = ApiServerThread(create_app(cfg, source), cfg.api.host, cfg.api.port, log_level="warning").start()
+    print(f"{LISTENING}{server.url} (docs: {server.url}/docs)", flush=True)
     while not done.wait(0.5):
         if not server.alive:
             print("covers-dist serve: the HTTP server stopped", file=sys.stderr)
