@@ -261,6 +261,11 @@ class RuntimeConfig:
     learner_num_cpus: float = _f(
         0.0, "CPUs reserved by each learner actor on Ray (0: none, it shares the workers' cores).", min=0.0
     )
+    learner_ahead: bool = _f(
+        True,
+        "Start the next policy's learner actor before the bank creates that policy, so its start-up overlaps "
+        "training (false: each learner starts when its policy appears; no idle learner holds CPUs or GPUs).",
+    )
     learner_threads: int = _f(
         2, "torch intra-op threads per learner (updates run while the workers wait, so they may use the cores).", min=1
     )

@@ -43,6 +43,7 @@ def live(ray_local, tmp_path_factory):
         "api.request_timeout_s=5",
         "network.channels=[2,4]",  # a narrow network: every actor builds it, the endpoints do not care
         "network.hidden=8",
+        "env.episodes_per_task=16",  # one iteration per group: the first recall comes at the 4th
     )
     trainer = Trainer(cfg, log=lambda *_: None)
     trainer.start_policy(0)
@@ -228,3 +229,11 @@ def test_a_process_joined_to_one_cluster_refuses_another_address(ray_local):
         connect_ray("127.0.0.1:1")
     assert connect_ray(current) is ray_local and connect_ray(current.replace("127.0.0.1:", "localhost:")) is ray_local
     assert connect_ray(None) is ray_local
+
+
+def test_the_next_policys_learner_is_started_ahead(live):
+    """runtime.learner_ahead (on by default): the learner of the policy the bank would create next is
+    already running (tests/test_pipeline.py: with it off, none is)."""
+    with live["lock"]:
+        trainer = live["trainer"]
+        assert trainer.backend.spare_learners() == [max(trainer.weights.versions) + 1]

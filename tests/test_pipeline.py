@@ -13,6 +13,8 @@ from test_runtime_serial import assignments, tiny_cfg
 def _run(cfg, resume=False):
     trainer = Trainer(cfg, resume=resume, log=lambda *_: None)
     trainer.run()
+    if not cfg.runtime.learner_ahead:  # the tiny config: every learner started when its policy appeared
+        assert trainer.backend.spare_learners() == []
     weights = {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.weights.versions)}
     result = (assignments(trainer), weights)
     trainer.close()

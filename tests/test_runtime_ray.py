@@ -4,6 +4,7 @@ mode, and fault tolerance of the rollout workers and the clustering actor."""
 import threading
 import time
 
+import pytest
 
 from covers_dist.runtime.driver import Trainer
 
@@ -18,10 +19,14 @@ def _ray_cfg(tmp_path, *extra):
 # tests/test_pipeline.py::test_ray_pipelined_run_equals_the_serial_pipelined_run
 
 
+@pytest.mark.slow
 def test_killed_worker_and_clustering_actor_come_back_without_losing_or_doubling(ray_local, tmp_path):
     """One run (one set of actors to start): a rollout worker killed while it samples restarts, then
     the clustering actor killed between iterations comes back with the same bank; no episode is
-    lost or assigned twice."""
+    lost or assigned twice. Slow tier: the default suite's chaos test
+    (tests/test_chaos.py::test_short_chaos_run_equals_the_clean_run) kills a worker and the
+    clustering actor in one run and checks every episode assigned and logged exactly once and the
+    run equal to the clean one; this one adds a kill timed into sampling."""
     import ray
 
     trainer = Trainer(_ray_cfg(tmp_path, "runtime.total_env_steps=2000"), log=lambda *_: None)

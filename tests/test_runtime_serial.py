@@ -22,6 +22,7 @@ TINY = [
     "network.channels=[2,4]",  # narrow: the loop's tests do not depend on the network's width
     "network.hidden=8",
     "runtime.log_every_s=1000",
+    "runtime.learner_ahead=false",  # on Ray: no learner started for a policy the short runs never create
 ]
 
 

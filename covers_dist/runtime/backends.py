@@ -85,6 +85,10 @@ class SerialBackend:
     def prepare_learner(self, policy_id: int) -> None:
         """Nothing to prepare in one process (a learner is built when its policy is created)."""
 
+    def spare_learners(self) -> list[int]:
+        """Policy ids whose learner was started ahead (none in one process)."""
+        return []
+
     def network_probe(self) -> np.ndarray:
         """The network's probe outputs in this run's processes (saved with each checkpoint)."""
         return self.workers[0].probe()
@@ -200,6 +204,10 @@ class RayBackend:
         """
         if policy_id not in self.learners and policy_id not in self._spare:
             self._spare[policy_id] = self._new_learner(policy_id)
+
+    def spare_learners(self) -> list[int]:
+        """Policy ids whose learner was started ahead and has no policy yet (``runtime.learner_ahead``)."""
+        return sorted(self._spare)
 
     def network_probe(self) -> np.ndarray:
         """The network's probe outputs in this run's processes (saved with each checkpoint)."""

@@ -85,7 +85,9 @@ class Trainer:
             from .backends import RayBackend
 
             self.backend = RayBackend(cfg, self.run_dir)
-        self.weights = PolicyWeights(self.backend, single_policy=cfg.runtime.method in ("equi", "cnn"))
+        self.weights = PolicyWeights(
+            self.backend, single_policy=cfg.runtime.method in ("equi", "cnn"), learner_ahead=cfg.runtime.learner_ahead
+        )
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
         self.evaluation = PeriodicEvaluation(cfg, self.run_dir, background=not cfg.runtime.serial, log=self.log)
 

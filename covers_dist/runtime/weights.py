@@ -27,9 +27,10 @@ class CompletedUpdate:
 class PolicyWeights:
     """Published weights per policy, the learners' versions and the update in flight."""
 
-    def __init__(self, backend: Any, single_policy: bool) -> None:
+    def __init__(self, backend: Any, single_policy: bool, learner_ahead: bool = True) -> None:
         self.backend = backend
         self.single_policy = single_policy  # baselines that keep one network: no next learner to prepare
+        self.learner_ahead = learner_ahead  # runtime.learner_ahead
         self.version = 0  # the newest run-wide version handed out
         self.versions: dict[int, int] = {}  # policy -> version of its published weights
         self.handles: dict[int, Any] = {}  # policy -> object-store handle of those weights
@@ -62,8 +63,8 @@ class PolicyWeights:
 
     def prepare_next_learner(self) -> None:
         """Start the next policy's learner ahead of time (the bank numbers policies 0, 1, 2, ...),
-        unless the method keeps a single policy."""
-        if not self.single_policy:
+        unless the method keeps a single policy or ``runtime.learner_ahead`` is off."""
+        if self.learner_ahead and not self.single_policy:
             self.backend.prepare_learner(max(self.versions) + 1)
 
     # ---- updates -----------------------------------------------------------------------------
