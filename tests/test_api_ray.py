@@ -28,7 +28,10 @@ from covers_dist.models import build_actor_critic
 from covers_dist.runtime.actors import clustering_actor_name
 from covers_dist.runtime.driver import Trainer
 
-MAX_STEPS = 40
+# iterations the live run trains in the background (after its first): enough for the tests to see
+# it progress and recall (from the 4th on every iteration recalls); more would only take the CPU
+# from the tests running beside it
+MAX_STEPS = 12
 
 
 @pytest.fixture(scope="module")
@@ -206,6 +209,14 @@ def test_serve_cli_on_the_checkpoint(live):
             assert c.post("/v1/assignments/what-if", json={"observations": obs}).json()["num_observations"] == 1
 
 
+def test_the_next_policys_learner_is_started_ahead(live):
+    """runtime.learner_ahead (on by default): the learner of the policy the bank would create next is
+    already running (tests/test_pipeline.py: with it off, none is)."""
+    with live["lock"]:
+        trainer = live["trainer"]
+        assert trainer.backend.spare_learners() == [max(trainer.weights.versions) + 1]
+
+
 def test_lost_actor_gives_503_not_500(live):
     import ray
 
@@ -229,11 +240,3 @@ def test_a_process_joined_to_one_cluster_refuses_another_address(ray_local):
         connect_ray("127.0.0.1:1")
     assert connect_ray(current) is ray_local and connect_ray(current.replace("127.0.0.1:", "localhost:")) is ray_local
     assert connect_ray(None) is ray_local
-
-
-def test_the_next_policys_learner_is_started_ahead(live):
-    """runtime.learner_ahead (on by default): the learner of the policy the bank would create next is
-    already running (tests/test_pipeline.py: with it off, none is)."""
-    with live["lock"]:
-        trainer = live["trainer"]
-        assert trainer.backend.spare_learners() == [max(trainer.weights.versions) + 1]
