@@ -288,9 +288,31 @@ def escnn_planar_repr(gspace: Any) -> Any:
 
 
 def _import_escnn_gspaces() -> Any:
+    return import_escnn("escnn.gspaces")
+
+
+def import_escnn(module: str) -> Any:
+    """``module`` of escnn (``"escnn.nn"``, ``"escnn.gspaces"``), imported with warnings silenced and,
+    the first time, without scikit-learn.
+
+    escnn imports scikit-learn at start-up only for ``randomized_svd``, which this package turns off
+    (``covers_dist.models._escnn_compat``: escnn's exact scipy fallback is used); importing
+    scikit-learn takes ~2 s of each process's start (every Ray actor builds a network). While escnn
+    is first imported, ``import sklearn`` fails, so escnn takes its fallback at once; afterwards
+    scikit-learn imports as usual (the clustering metrics use it). If scikit-learn is already
+    imported, nothing is blocked.
+    """
+    import importlib
+    import sys
     import warnings
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        from escnn import gspaces
-    return gspaces
+    block = "escnn" not in sys.modules and "sklearn" not in sys.modules
+    if block:
+        sys.modules["sklearn"] = None  # type: ignore[assignment]  # "import sklearn" -> ImportError
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return importlib.import_module(module)
+    finally:
+        if block and sys.modules.get("sklearn", False) is None:
+            del sys.modules["sklearn"]

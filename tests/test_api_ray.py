@@ -29,7 +29,7 @@ from covers_dist.runtime.actors import clustering_actor_name
 from covers_dist.runtime.driver import Trainer
 
 # iterations the live run trains in the background (after its first): enough for the tests to see
-# it progress and recall (from the 4th on every iteration recalls); more would only take the CPU
+# it progress and recall (from the 3rd on every iteration recalls); more would only take the CPU
 # from the tests running beside it
 MAX_STEPS = 12
 
@@ -46,7 +46,8 @@ def live(ray_local, tmp_path_factory):
         "api.request_timeout_s=5",
         "network.channels=[2,4]",  # a narrow network: every actor builds it, the endpoints do not care
         "network.hidden=8",
-        "env.episodes_per_task=16",  # one iteration per group: the first recall comes at the 4th
+        "env.tasks=[reach,push]",  # two groups, one iteration each: the first recall comes at the 3rd
+        "env.episodes_per_task=16",
     )
     trainer = Trainer(cfg, log=lambda *_: None)
     trainer.start_policy(0)

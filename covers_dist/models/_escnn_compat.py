@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import copy
 import functools
-import warnings
 from typing import Any, Callable
 
 import numpy as np
+
+from ..symmetry import import_escnn
 
 __all__ = ["import_escnn_nn"]
 
@@ -32,10 +33,9 @@ _PATCHED = False
 def import_escnn_nn() -> Any:
     """``escnn.nn``, imported with warnings silenced and the SVD fallback selected."""
     global _PATCHED
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        import escnn.group._numerical as numerical
-        from escnn import nn as enn
+    enn = import_escnn("escnn.nn")  # without scikit-learn: escnn's fallback, set below anyway
+    import escnn.group._numerical as numerical
+
     if not _PATCHED:
         numerical.randomized_svd = None
         _remember_clebsch_gordan()
