@@ -41,7 +41,9 @@ def _tiny_config(tmp_path):
     cfg["env"].update(episodes_per_task=8, max_episode_steps=20)
     cfg["clustering"]["update_every"] = 8
     cfg["ppo"].update(epochs=1, minibatch_size=80)
-    cfg["runtime"].update(total_env_steps=160, log_every_s=0.5)  # one iteration: the job trains and checkpoints
+    # one iteration: the job trains on the head's actors and checkpoints; one rollout worker and no
+    # learner started ahead (fewer processes to start: the recipe is under test, not the run's size)
+    cfg["runtime"].update(total_env_steps=160, log_every_s=0.5, num_workers=1, learner_ahead=False)
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
