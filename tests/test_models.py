@@ -508,3 +508,25 @@ def test_in_memory_clebsch_gordan_cache_gives_escnn_values_as_copies():
         np.testing.assert_array_equal(first, expected)
         first[...] = 7.0
         np.testing.assert_array_equal(remembered(m, n, j, "DihedralGroup", **group._keys), expected)
+
+
+def test_escnn_is_imported_without_scikit_learn_and_scikit_learn_still_imports():
+    """In a fresh process: building a network leaves scikit-learn unimported (escnn took its scipy
+    fallback), and scikit-learn imports as usual afterwards (the clustering metrics need it)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from covers_dist.config import NetworkConfig\n"
+        "from covers_dist.envs.layout import ObsLayout\n"
+        "from covers_dist.models import build_actor_critic\n"
+        "layout = ObsLayout(image_size=16, proprio_dim=4, proprio_pairs=1, action_dim=2, action_pairs=1)\n"
+        "build_actor_critic(NetworkConfig(channels=[2], hidden=8, group='D4'), layout, seed=0)\n"
+        "print('sklearn' in sys.modules)\n"
+        "import escnn.group._numerical as numerical, sklearn.metrics\n"
+        "print(numerical.randomized_svd is None, sklearn.metrics.adjusted_rand_score([0, 1], [1, 0]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["False", "True", "1.0"], out.stdout
