@@ -288,45 +288,6 @@ def escnn_planar_repr(gspace: Any) -> Any:
 
 
 def _import_escnn_gspaces() -> Any:
-    return import_escnn("escnn.gspaces")
+    from ._imports import import_lightly
 
-
-def import_escnn(module: str) -> Any:
-    """``module`` of escnn (``"escnn.nn"``, ``"escnn.gspaces"``), imported with warnings silenced and
-    without scikit-learn.
-
-    escnn imports scikit-learn at start-up only for ``randomized_svd``, which this package turns off
-    (``covers_dist.models._escnn_compat``: escnn's exact scipy fallback is used). Importing
-    scikit-learn there costs each process ~0.6 s of its start (escnn's import: 2.5 -> 1.9 s
-    measured; every Ray actor builds a network). While escnn is imported, an import finder refuses
-    scikit-learn to escnn's own ``escnn.group._numerical`` (found on the importing thread's stack),
-    so escnn takes its fallback at once; every other import of scikit-learn, on any thread, is
-    untouched (the clustering metrics use it).
-    """
-    import importlib
-    import sys
-    import warnings
-
-    finder = _NoScikitLearnForEscnn()
-    sys.meta_path.insert(0, finder)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return importlib.import_module(module)
-    finally:
-        sys.meta_path.remove(finder)
-
-
-class _NoScikitLearnForEscnn:
-    """A ``sys.meta_path`` finder: ``import sklearn...`` from ``escnn.group._numerical`` fails."""
-
-    def find_spec(self, name: str, path: Any = None, target: Any = None) -> None:
-        import sys
-
-        if name == "sklearn" or name.startswith("sklearn."):
-            frame = sys._getframe(1)
-            while frame is not None:
-                if frame.f_globals.get("__name__") == "escnn.group._numerical":
-                    raise ImportError("scikit-learn is not used by escnn here (its scipy fallback is)")
-                frame = frame.f_back
-        return None
+    return import_lightly("escnn.gspaces")

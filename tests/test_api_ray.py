@@ -48,6 +48,7 @@ def live(ray_local, tmp_path_factory):
         "network.hidden=8",
         "env.tasks=[reach,push]",  # two groups, one iteration each: the first recall comes at the 3rd
         "env.episodes_per_task=16",
+        "runtime.num_workers=1",  # one actor fewer to start; the endpoints read the clustering actor
     )
     trainer = Trainer(cfg, log=lambda *_: None)
     trainer.start_policy(0)

@@ -396,8 +396,15 @@ def test_metrics_against_sklearn_and_by_hand():
     assert adjusted_rand_index([3, 3, 7, 7], [1, 1, 0, 0]) == 1.0
     assert adjusted_rand_index([], []) is None
     rng = np.random.default_rng(9)
-    p, g = rng.integers(0, 4, 60), rng.integers(0, 3, 60)
-    assert adjusted_rand_index(p, g) == pytest.approx(adjusted_rand_score(g, p))
+    for n, kp, kg in [(60, 4, 3), (7, 7, 2), (500, 9, 4), (3, 1, 3), (40, 40, 40)]:
+        for _ in range(20):
+            p, g = rng.integers(0, kp, n), rng.integers(0, kg, n)
+            assert adjusted_rand_index(p, g) == pytest.approx(adjusted_rand_score(g, p), abs=1e-12), (p, g)
+    # the degenerate partitions: one episode, every episode alone, all in one cluster
+    for p, g in [([5], [2]), ([0, 1, 2], [2, 1, 0]), ([1, 1, 1], [0, 0, 0]), ([0, 1, 2], [0, 0, 0])]:
+        assert adjusted_rand_index(p, g) == pytest.approx(adjusted_rand_score(g, p)), (p, g)
+    big = np.repeat([0, 1], 50_000)  # 10^5 episodes: pair counts ~5e9 and their products ~1e19
+    assert adjusted_rand_index(big, big[::-1]) == 1.0
     assert policy_counts([2, 0, 2]) == {0: 1, 2: 2}
     table = confusion_table([0, 0, 1, 1, 1], [5, 6, 6, 6, 5])
     assert table == {"policies": [0, 1], "groups": [5, 6], "counts": [[1, 1], [1, 2]]}

@@ -510,23 +510,32 @@ def test_in_memory_clebsch_gordan_cache_gives_escnn_values_as_copies():
         np.testing.assert_array_equal(remembered(m, n, j, "DihedralGroup", **group._keys), expected)
 
 
-def test_escnn_is_imported_without_scikit_learn_and_scikit_learn_still_imports():
-    """In a fresh process: building a network leaves scikit-learn unimported (escnn took its scipy
-    fallback), and scikit-learn imports as usual afterwards (the clustering metrics need it)."""
+def test_escnn_and_pot_are_imported_without_scikit_learn_and_both_still_import():
+    """In a fresh process: building a network, a W1 distance and a bank's ARI leave scikit-learn
+    unimported (escnn and POT took their fallbacks), and the network alone leaves ``scipy.stats``
+    not yet loaded (escnn's init module holds it lazily; POT loads it); afterwards both import and work as usual, escnn's own use of
+    ``scipy.stats`` included."""
     import subprocess
     import sys
 
     code = (
         "import sys\n"
+        "import numpy as np\n"
         "from covers_dist.config import NetworkConfig\n"
         "from covers_dist.envs.layout import ObsLayout\n"
         "from covers_dist.models import build_actor_critic\n"
+        "from covers_dist.clustering.distances import wasserstein1\n"
+        "from covers_dist.clustering.metrics import adjusted_rand_index\n"
         "layout = ObsLayout(image_size=16, proprio_dim=4, proprio_pairs=1, action_dim=2, action_pairs=1)\n"
         "build_actor_critic(NetworkConfig(channels=[2], hidden=8, group='D4'), layout, seed=0)\n"
-        "print('sklearn' in sys.modules)\n"
-        "import escnn.group._numerical as numerical, sklearn.metrics\n"
-        "print(numerical.randomized_svd is None, sklearn.metrics.adjusted_rand_score([0, 1], [1, 0]))\n"
+        "print(type(sys.modules['scipy.stats']).__name__)\n"
+        "w = wasserstein1(np.zeros((2, 3)), np.ones((3, 3)))\n"
+        "print('sklearn' in sys.modules, adjusted_rand_index([0, 1], [1, 0]))\n"
+        "import escnn.group._numerical as numerical, escnn.nn.init as init, ot.lowrank, sklearn.metrics\n"
+        "q = init.stats.ortho_group.rvs(3, random_state=0)\n"
+        "print(numerical.randomized_svd is None, ot.lowrank.sklearn_import, round(w, 6) == round(3 ** 0.5, 6),\n"
+        "      sklearn.metrics.adjusted_rand_score([0, 1], [1, 0]), np.allclose(q @ q.T, np.eye(3)))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.split() == ["False", "True", "1.0"], out.stdout
+    assert out.stdout.split() == ["_LazyModule", "False", "1.0", "True", "False", "True", "1.0", "True"], out.stdout

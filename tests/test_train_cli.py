@@ -12,7 +12,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 EXE = str(Path(sys.executable).parent / "covers-dist")
 SMALL = ["--set", "env.episodes_per_task=8", "--set", "env.max_episode_steps=50", "--set", "clustering.update_every=8", "--set", "ppo.epochs=1",
-         "--set", "runtime.log_every_s=0.5", "--set", "network.channels=[2,4]", "--set", "network.hidden=8"]
+         "--set", "runtime.log_every_s=0.5", "--set", "network.channels=[2,4]", "--set", "network.hidden=8",
+         "--set", "env.image_size=16"]
 
 
 def _env():

@@ -138,7 +138,9 @@ class PolicyBank:
         self.group_policy: dict[int, int] = {}  # ground-truth mode: group id -> policy id
         self.next_episode = 0
         if metric == "wasserstein":
-            import ot  # noqa: F401  (POT's first import costs about a second; pay it here, not in an assignment)
+            from .._imports import import_lightly
+
+            import_lightly("ot")  # POT's first import costs about a second: pay it here, not in an assignment
 
     @classmethod
     def from_config(cls, cfg: Any, feature_fn: FeatureFn | None = None, mode: str | None = None) -> "PolicyBank":

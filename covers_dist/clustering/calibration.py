@@ -48,6 +48,9 @@ def transport_cost(a: np.ndarray, b: np.ndarray, cost: np.ndarray, max_iter: int
     argument checks, backend dispatch and dual centering took about two thirds of a call on an
     8 x 128 problem, and a test makes up to ``N`` calls. Falls back to ``ot.emd2`` (and its
     warnings) when the core is unavailable or does not report an optimal solution."""
+    from .._imports import import_lightly
+
+    ot = import_lightly("ot")
     try:
         from ot.lp.emd_wrap import emd_c
     except ImportError:  # pragma: no cover - another POT layout
@@ -56,8 +59,6 @@ def transport_cost(a: np.ndarray, b: np.ndarray, cost: np.ndarray, max_iter: int
         result = emd_c(a, b, cost, max_iter, 1)
         if result[4] == 1:  # OPTIMAL
             return float(result[1])
-    import ot
-
     return float(ot.emd2(a, b, cost, numItermax=max_iter))
 
 

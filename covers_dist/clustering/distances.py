@@ -67,9 +67,11 @@ def _check_sets(o: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def wasserstein1(o: np.ndarray, b: np.ndarray) -> float:
     """Exact W1 (Euclidean ground cost) between the uniform empirical distributions of O and B."""
-    import ot  # POT: imported here so that merely importing the package stays cheap
-
     from scipy.spatial.distance import cdist
+
+    from .._imports import import_lightly
+
+    ot = import_lightly("ot")  # POT: imported here so that merely importing the package stays cheap
 
     o, b = _check_sets(o, b)
     cost = cdist(o, b, metric="euclidean")

@@ -23,7 +23,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..symmetry import import_escnn
+from .._imports import import_lightly
 
 __all__ = ["import_escnn_nn"]
 
@@ -33,7 +33,7 @@ _PATCHED = False
 def import_escnn_nn() -> Any:
     """``escnn.nn``, imported with warnings silenced and the SVD fallback selected."""
     global _PATCHED
-    enn = import_escnn("escnn.nn")  # without scikit-learn: escnn's fallback, set below anyway
+    enn = import_lightly("escnn.nn")  # without scikit-learn: escnn's fallback, set below anyway
     import escnn.group._numerical as numerical
 
     if not _PATCHED:
