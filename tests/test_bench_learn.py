@@ -350,7 +350,7 @@ def test_short_peer_runs_on_equal_terms():
     """RLlib on the project's CNN twin and SB3's PPO, one iteration each: the same PPO settings as
     covers-dist, read back from the built algorithms, and the same evaluation."""
     res = _learn_process("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every", "400",
-                 "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=64",
+                 "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=48",
                  "--json", timeout=400)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads(res.stdout.strip().splitlines()[-1])

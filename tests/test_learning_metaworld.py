@@ -40,12 +40,12 @@ def _learn(tmp_path: Path, steps: int, every: int, serial: bool = True) -> tuple
     return result["contenders"]["covers"]["curve"], done.stderr
 
 
-def _distinct_states_on_every_transform(curve: list[dict]) -> None:
+def _distinct_states_on_every_transform(curve: list[dict], episodes: int = 2) -> None:
     for point in curve:
-        assert len(point["success"]) == 8 and point["episodes_per_transform"] == 2, point
-        # 16 reset states; two of them may look alike at 64 px (the count is of observed states),
-        # but far more than the 2 that every transform shared before
-        assert 8 < point["distinct_initial_states"] <= 16, point
+        assert len(point["success"]) == 8 and point["episodes_per_transform"] == episodes, point
+        # 8 x episodes reset states; a few of them may look alike at 64 px (the count is of observed
+        # states), but far more than the `episodes` that every transform shared before
+        assert 4 * episodes < point["distinct_initial_states"] <= 8 * episodes, point
 
 
 def test_short_drawer_close_run_scores_alike_on_every_transform(tmp_path, capsys, monkeypatch, one_torch_thread):
@@ -61,7 +61,7 @@ def test_short_drawer_close_run_scores_alike_on_every_transform(tmp_path, capsys
     out = tmp_path / "out"
     budget = 8 * 100  # one iteration of 8 episodes x 100 steps (configs/quickstart.yaml)
     code = main(["bench", "learn", "--config", "configs/quickstart.yaml", "--task", TASK, "--contenders", "covers",
-                 "--serial", "--budget-steps", str(budget), "--eval-every", str(budget), "--eval-episodes", "2",
+                 "--serial", "--budget-steps", str(budget), "--eval-every", str(budget), "--eval-episodes", "1",
                  "--json", "--out", str(out), "--keep-runs"])  # fmt: skip
     captured = capsys.readouterr()
     assert code == 0, captured.err[-3000:]
@@ -70,7 +70,7 @@ def test_short_drawer_close_run_scores_alike_on_every_transform(tmp_path, capsys
     assert [p["env_steps"] for p in curve] == [0, budget], curve
     assert covers["stopped"] == "steps" or covers["reached"], covers["stopped"]
     assert curve[0]["mean_success"] == 0.0  # the untrained policy never closes the drawer
-    _distinct_states_on_every_transform(curve)
+    _distinct_states_on_every_transform(curve, episodes=1)
     assert (out / "curves.png").is_file()
 
     # the trained policy (its final checkpoint) on g.T of the same initial states, for every g
