@@ -248,7 +248,14 @@ class RuntimeConfig:
     envs_per_worker: int = _f(2, "Environments stepped together in each worker.", min=1)
     total_env_steps: int = _f(20000, "Stop after this many env steps.", min=1)
     num_cpus: int = _f(2, "CPUs for a locally started Ray instance.", min=1)
-    num_gpus: float = _f(0.0, "GPUs per learner actor (0: CPU learners).", min=0.0)
+    num_gpus: float = _f(
+        0.0, "GPUs per learner actor, fractions allowed (0.25: four learners share a GPU; 0: CPU learners).", min=0.0
+    )
+    check_fit: bool = _f(
+        True,
+        "Refuse at start a run whose actors can never all be placed on the Ray cluster's nodes (false: skip the "
+        "check, e.g. when an autoscaler adds the nodes later).",
+    )
     ray_address: str | None = _f(None, "Address of a running Ray cluster (null: start a local one).")
     run_dir: str = _f("runs/latest", "Directory for metrics, checkpoints and plots.")
     checkpoint_every: int = _f(10, "Update steps between checkpoints.", min=1)

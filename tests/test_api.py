@@ -202,3 +202,17 @@ def test_empty_bank(cfg):
             assert r.status_code == 409 and "empty" in r.json()["detail"]
             r = c.post("/v1/act", json={"observation": one[0]})
             assert r.status_code == 404 and "no current policy" in r.json()["detail"]
+
+
+def test_binding_beyond_loopback_needs_a_token(cfg, service):
+    """0.0.0.0 without a token is refused before anything binds; with a token the server is made
+    (not started here: tests bind loopback only), and loopback needs none."""
+    from covers_dist.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"api.host='0.0.0.0'.*no token.*api.token or COVERS_API_TOKEN"):
+        ApiServerThread(create_app(cfg, LocalSource(service), token=""), host="0.0.0.0")
+    with pytest.raises(ConfigError, match="no token"):
+        ApiServerThread(create_app(cfg, LocalSource(service), token=""), host="::")
+    ApiServerThread(create_app(cfg, LocalSource(service), token="s3cret"), host="0.0.0.0")
+    for host in ("127.0.0.1", "::1", "localhost"):
+        ApiServerThread(create_app(cfg, LocalSource(service), token=""), host=host)

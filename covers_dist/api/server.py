@@ -43,11 +43,34 @@ class ApiHandle(Protocol):
     def stop(self) -> None: ...
 
 
+def check_exposure(app: Any, host: str) -> None:
+    """Refuse to bind beyond the loopback interface an app that asks for no token: anyone who can
+    reach the address could then read the run and act with its policies."""
+    import ipaddress
+
+    api = getattr(getattr(app, "state", None), "api", None)
+    if api is None or getattr(api, "token", None):
+        return
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        from ..config import ConfigError
+
+        raise ConfigError(
+            f"api.host={host!r} is reachable beyond this machine, and no token is set: set api.token or "
+            "COVERS_API_TOKEN (clients send Authorization: Bearer <token>), or bind 127.0.0.1"
+        )
+
+
 class ApiServerThread:
     """uvicorn serving ``app`` from a daemon thread; ``port=0`` picks a free port."""
 
     def __init__(self, app: Any, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning") -> None:
         import uvicorn
+
+        check_exposure(app, host)
 
         config = uvicorn.Config(app, host=host, port=port, log_level=log_level, access_log=False, lifespan="on")
         self.server = uvicorn.Server(config)
@@ -173,10 +196,10 @@ def start_api_server(cfg: Config, source: Any, mode: str = "auto", timeout_s: fl
     if actor and mode != "thread":
         import ray
 
-        from ..runtime.actors import ACTOR_NAMESPACE, clustering_actor_name
+        from ..runtime.actors import clustering_actor_name, run_namespace
 
         ctx = ray.get_runtime_context()
-        args = ["--address", ctx.gcs_address, "--actor", clustering_actor_name(cfg), "--namespace", ACTOR_NAMESPACE]
+        args = ["--address", ctx.gcs_address, "--actor", clustering_actor_name(cfg), "--namespace", run_namespace(cfg)]
         args += ["--host", cfg.api.host, "--port", str(cfg.api.port)]
         return ApiServerProcess(args, cfg).start(timeout_s)
     if actor:

@@ -23,13 +23,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--serial", action="store_true", help="run every component in this process (no Ray)")
     p.add_argument("--run-dir", help="override runtime.run_dir")
     p.add_argument("--overwrite", action="store_true", help="start over in a run directory that holds a run")
+    p.add_argument(
+        "--resume-existing",
+        action="store_true",
+        help="continue the run when the run directory already holds one (with that run's own config), "
+        "else start it: what a retried or re-applied cluster job runs",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import signal
 
-    from ..runtime.driver import train
+    from ..runtime.driver import holds_a_run, train
 
     for sig in (signal.SIGINT, signal.SIGTERM):  # after the run has stopped, a signal has nothing left to stop
         signal.signal(sig, lambda *_: None)
@@ -45,7 +51,14 @@ def run(args: argparse.Namespace) -> int:
             args.overrides.append("runtime.serial=true")
         if args.run_dir:
             args.overrides.append(f"runtime.run_dir={args.run_dir}")
-        result = train(config_from_args(args), overwrite=args.overwrite, services=_http_service)
+        if args.resume_existing and args.overwrite:
+            raise SystemExit("covers-dist train: --resume-existing and --overwrite contradict each other")
+        cfg = config_from_args(args)
+        if args.resume_existing and holds_a_run(cfg.runtime.run_dir):
+            print(f"{cfg.runtime.run_dir} holds a run: continuing it with its own config", flush=True)
+            result = train(resume_dir=cfg.runtime.run_dir, services=_http_service)
+        else:
+            result = train(cfg, overwrite=args.overwrite, services=_http_service)
     keys = ("status", "checkpoint", "ari", "num_policies", "policy_counts")
     print(json.dumps({k: result.get(k) for k in keys}, default=str), flush=True)
     return 0

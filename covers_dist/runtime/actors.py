@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import os
+
 import ray
 
 from ..config import Config
@@ -24,11 +26,11 @@ from .learner import PolicyLearner
 from .processes import announce
 from .rollout import EVAL_WORKER_INDEX, RolloutWorker, split_first_frames
 
-__all__ = ["rollout_actor", "eval_actor", "clustering_actor", "learner_actor", "clustering_actor_name"]
+__all__ = ["rollout_actor", "eval_actor", "clustering_actor", "learner_actor", "clustering_actor_name", "run_namespace"]
 
 #: Restarts of a worker or learner actor before Ray gives up on it (its state survives restarts).
 MAX_RESTARTS = 100
-#: Ray namespace of the named clustering actor (so services can find it from any job).
+#: Prefix of the Ray namespace of a run's named clustering actor (:func:`run_namespace`).
 ACTOR_NAMESPACE = "covers-dist"
 
 
@@ -87,11 +89,21 @@ def clustering_actor_name(cfg: Config) -> str:
     return f"covers-clustering-{cfg.name}"
 
 
+def run_namespace(cfg: Config) -> str:
+    """The Ray namespace of this run's clustering actor: one per run directory (its absolute path),
+    so two runs of one config on one cluster never share a bank; a resumed run gets its own back.
+    Services find the actor by name in every namespace (``covers-dist serve --address``)."""
+    import hashlib
+
+    where = os.path.abspath(cfg.runtime.run_dir)
+    return f"{ACTOR_NAMESPACE}-{hashlib.sha256(where.encode()).hexdigest()[:12]}"
+
+
 def clustering_actor(cfg: Config, run_dir: str) -> Any:
     """Create (or get) the named clustering actor of this run."""
     cls = ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)(_ClusteringHost)
     return cls.options(
-        name=clustering_actor_name(cfg), namespace=ACTOR_NAMESPACE, get_if_exists=True, lifetime=None
+        name=clustering_actor_name(cfg), namespace=run_namespace(cfg), get_if_exists=True, lifetime=None
     ).remote(cfg, run_dir)
 
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..config import Config
 from ..models.checks import check_same_function
+from .placement import check_fits
 from .rollout import EVAL_WORKER_INDEX, EpisodeSpec, merge_first_frames, split_first_frames, training_seeds
 
 __all__ = ["SerialBackend", "RayBackend", "RayEvalExecutors"]
@@ -124,6 +125,8 @@ class RayBackend:
 
         self.ray = ray
         self.cfg = cfg
+        if cfg.runtime.check_fit:  # before any actor is queued: one that never fits would wait forever
+            check_fits(cfg, [n["Resources"] for n in ray.nodes() if n.get("Alive")])
         self.run_dir = str(Path(run_dir).resolve())  # actors may run in another working directory
         self._learner_cls = learner_actor(cfg)
         self.workers = [rollout_actor(cfg).remote(cfg, i, self.run_dir) for i in range(cfg.runtime.num_workers)]

@@ -41,12 +41,13 @@ from .learner import LIVE_DIR
 from .logfiles import remove_log
 from .metrics import MetricsWriter, Progress
 from .processes import announce
+from .ray_setup import check_run_dir_outlives_the_job
 from .rollout import EpisodeSpec
 from .tally import EpisodeTally, iteration_row
 from .trainer_checkpoint import drop_live_states, restore_trainer, save_trainer
 from .weights import PolicyWeights
 
-__all__ = ["Trainer", "train"]
+__all__ = ["Trainer", "train", "holds_a_run"]
 
 
 class Trainer:
@@ -276,6 +277,12 @@ def _in_order(plan: list[list[EpisodeSpec]]) -> list[EpisodeSpec]:
 def _field(item: Any, name: str) -> Any:
     return item[name] if isinstance(item, dict) else getattr(item, name)
 
+def holds_a_run(run_dir: str | Path) -> bool:
+    """Whether ``run_dir`` holds a run's checkpoints (a new run there needs ``overwrite``)."""
+    ckpts = Path(run_dir) / "checkpoints"
+    return ckpts.is_dir() and any(ckpts.iterdir())
+
+
 def train(
     cfg: Config | None = None,
     resume_dir: str | None = None,
@@ -296,8 +303,9 @@ def train(
             raise FileNotFoundError(f"{resume_dir} is not a run directory (no config.yaml)")
         cfg = load_run_config(cfg_path)
     assert cfg is not None
+    check_run_dir_outlives_the_job(cfg.runtime.run_dir)
     run_dir = Path(cfg.runtime.run_dir)
-    if resume_dir is None and (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").iterdir()):
+    if resume_dir is None and holds_a_run(run_dir):
         if not overwrite:
             raise FileExistsError(
                 f"{run_dir} already holds a run: continue it with --resume {run_dir}, "
@@ -323,7 +331,7 @@ def train(
         if not cfg.runtime.serial:
             from .ray_setup import init_ray, shutdown_ray
 
-            init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address, cfg.runtime.num_gpus or None)
+            init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address)  # a local instance counts the machine's GPUs
             started = True
             graceful()  # ray.init replaced it with one that exits at once
         trainer = Trainer(cfg, resume=resume_dir is not None, log=log)

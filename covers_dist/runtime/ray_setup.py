@@ -12,7 +12,7 @@ import os
 import tempfile
 from typing import Any
 
-__all__ = ["init_ray", "loopback_only", "ray_temp_dir", "shutdown_ray", "resolve_weights"]
+__all__ = ["init_ray", "loopback_only", "ray_temp_dir", "shutdown_ray", "resolve_weights", "check_run_dir_outlives_the_job"]
 
 _STARTED_HERE = False
 
@@ -69,6 +69,29 @@ def loopback_only() -> None:
         from ray._private import ray_constants
 
         ray_constants.ENABLE_RAY_CLUSTER = False
+
+
+def check_run_dir_outlives_the_job(run_dir: str) -> None:
+    """Refuse a relative ``runtime.run_dir`` in a driver that ``ray job submit --working-dir``
+    started: such a driver runs in Ray's per-job copy of the working directory, which Ray deletes
+    when the job ends, and the run (its checkpoints included) would go with it."""
+    import json
+
+    from ..config import ConfigError
+
+    job = os.environ.get("RAY_JOB_CONFIG_JSON_ENV_VAR")  # set by Ray's job supervisor for the entrypoint
+    if not job or os.path.isabs(run_dir):
+        return
+    try:
+        working_dir = (json.loads(job).get("runtime_env") or {}).get("working_dir")
+    except (ValueError, AttributeError):
+        return
+    if working_dir:
+        raise ConfigError(
+            f"runtime.run_dir={run_dir!r} is relative, and this Ray job runs in Ray's temporary copy of its "
+            f"working directory ({os.getcwd()}), which Ray deletes when the job ends: give an absolute path on "
+            "storage that outlives the job, e.g. --run-dir /data/runs/NAME"
+        )
 
 
 def shutdown_ray() -> None:
