@@ -23,6 +23,9 @@ def test_the_paper_config_fits_the_manifests_cluster_and_a_whole_gpu_per_learner
     with pytest.raises(ClusterTooSmall, match=r"needs 5 learners.*1 GPU.*set runtime.num_gpus to 0.2 or less"):
         check_fits(whole, CLUSTER)
     check_fits(whole, [*CLUSTER, {"CPU": 4, "GPU": 4}])  # or more GPUs
+    single = load_config(PAPER, ["runtime.num_gpus=1", "runtime.method=equi"])
+    assert learners_needed(single) == 1
+    check_fits(single, CLUSTER)  # one policy for the whole stream: one learner, one GPU
     with pytest.raises(ClusterTooSmall, match=r"has 0 GPUs.*runtime.num_gpus: 0"):
         check_fits(cfg, [{"CPU": 64.0}])
     assert issubclass(ClusterTooSmall, ConfigError)  # the CLI reports it as a config error (exit 2)
