@@ -24,7 +24,6 @@ estimate still imports scikit-learn when it runs.
 from __future__ import annotations
 
 import importlib
-import importlib.machinery
 import importlib.util
 import sys
 import warnings

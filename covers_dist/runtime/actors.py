@@ -14,9 +14,8 @@ Every actor records its PID in ``RUN_DIR/processes/`` when it starts (:mod:`.pro
 
 from __future__ import annotations
 
-from typing import Any
-
 import os
+from typing import Any
 
 import ray
 

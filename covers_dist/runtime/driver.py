@@ -36,6 +36,7 @@ from ..config import Config, config_to_dict, load_run_config
 from ..envs.stream import TaskStream
 from .checkpoint import latest_valid_checkpoint
 from .clustering_service import LIVE_DIR as CLUSTERING_LIVE_DIR
+from .clustering_service import SINGLE_POLICY_METHODS
 from .evaluation import PeriodicEvaluation
 from .learner import LIVE_DIR
 from .logfiles import remove_log
@@ -87,7 +88,7 @@ class Trainer:
 
             self.backend = RayBackend(cfg, self.run_dir)
         self.weights = PolicyWeights(
-            self.backend, single_policy=cfg.runtime.method in ("equi", "cnn"), learner_ahead=cfg.runtime.learner_ahead
+            self.backend, single_policy=cfg.runtime.method in SINGLE_POLICY_METHODS, learner_ahead=cfg.runtime.learner_ahead
         )
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
         self.evaluation = PeriodicEvaluation(cfg, self.run_dir, background=not cfg.runtime.serial, log=self.log)

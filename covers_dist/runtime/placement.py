@@ -22,6 +22,7 @@ import math
 from typing import Any, Mapping, Sequence
 
 from ..config import ConfigError
+from .clustering_service import SINGLE_POLICY_METHODS
 
 __all__ = ["ClusterTooSmall", "learners_needed", "check_fits"]
 
@@ -33,14 +34,10 @@ class ClusterTooSmall(ConfigError):
     cluster: the message names the fields to change)."""
 
 
-#: methods with one policy for the whole stream (no bank, no learner started ahead)
-SINGLE_POLICY = ("equi", "cnn")
-
-
 def learners_needed(cfg: Any) -> int:
     """Learner actors alive at once when every group has its policy: one per group, plus the one
     started ahead of the next policy; one for the single-policy baselines."""
-    if cfg.runtime.method in SINGLE_POLICY:
+    if cfg.runtime.method in SINGLE_POLICY_METHODS:
         return 1
     return len(cfg.env.tasks) + (1 if cfg.runtime.learner_ahead else 0)
 
@@ -76,7 +73,7 @@ def check_fits(cfg: Any, nodes: Sequence[Mapping[str, float]]) -> None:
     if fit >= need:
         return
     asks = " and ".join(f"{v:g} {k}" for k, v in (("GPU", gpu), ("CPU", cpu)) if v > 0)
-    groups = "one policy" if rt.method in SINGLE_POLICY else f"{len(cfg.env.tasks)} task groups" + (
+    groups = "one policy" if rt.method in SINGLE_POLICY_METHODS else f"{len(cfg.env.tasks)} task groups" + (
         ", plus one started ahead" if rt.learner_ahead else "")  # fmt: skip
     why = [f"this run needs {need} learner{'s' * (need > 1)} at once ({groups}), each asking for {asks}"]
     if gpu > 0:
