@@ -41,6 +41,10 @@ __all__ = [
 ]
 
 
+#: URI schemes of ``runtime.storage`` (the filesystems pyarrow.fs opens by URI)
+STORAGE_SCHEMES = ("file", "s3", "gs", "gcs", "hdfs", "abfs", "abfss")
+
+
 class ConfigError(ValueError):
     """A configuration value is missing, unknown, mistyped or inconsistent."""
 
@@ -258,6 +262,12 @@ class RuntimeConfig:
     )
     ray_address: str | None = _f(None, "Address of a running Ray cluster (null: start a local one).")
     run_dir: str = _f("runs/latest", "Directory for metrics, checkpoints and plots.")
+    storage: str | None = _f(
+        None,
+        "Where the run's state lives for every process of it (live learner and clustering state, process records, "
+        "copies of the checkpoints and logs): a local path or a pyarrow.fs URI (s3://bucket/prefix, gs://..., "
+        "file://...). null: runtime.run_dir, which on a multi-node cluster must then be a disk every node mounts.",
+    )
     checkpoint_every: int = _f(10, "Update steps between checkpoints.", min=1)
     torch_threads: int = _f(1, "torch intra-op threads per rollout worker and clustering process.", min=1)
     pipeline: bool = _f(
@@ -297,6 +307,15 @@ class RuntimeConfig:
     )
 
     def __post_init__(self) -> None:
+        if self.storage is not None and not str(self.storage).strip():
+            raise ConfigError("runtime.storage is empty: give a local path, a URI such as s3://bucket/prefix, or null")
+        if self.storage is not None and "://" in self.storage:
+            scheme = self.storage.split("://", 1)[0]
+            if scheme not in STORAGE_SCHEMES:
+                raise ConfigError(
+                    f"runtime.storage={self.storage.split('?', 1)[0]!r}: unknown scheme {scheme!r}, "
+                    f"expected a local path or one of {', '.join(s + '://' for s in STORAGE_SCHEMES)}"
+                )
         mb = self.log_rotate_mb
         if mb is not None and (isinstance(mb, bool) or not isinstance(mb, (int, float)) or not mb > 0):
             raise ConfigError(f"runtime.log_rotate_mb={mb!r} must be > 0 (null: never rotate)")

@@ -58,7 +58,7 @@ def test_every_kuberay_object_validates_strictly():
     assert kinds.count("RayJob") == 1 and "Service" in kinds
     for doc in docs:
         if doc["apiVersion"] != "ray.io/v1":
-            assert doc["apiVersion"] == "v1" and doc["kind"] in ("PersistentVolumeClaim", "Service"), doc["kind"]
+            assert doc["apiVersion"] == "v1" and doc["kind"] == "Service", doc["kind"]
             continue
         errors = sorted(_validator(doc["kind"]).iter_errors(doc), key=lambda e: list(e.path))
         assert not errors, [f"{'/'.join(map(str, e.path))}: {e.message}" for e in errors[:5]]
@@ -79,8 +79,9 @@ def test_the_strict_schema_catches_a_misspelt_field_and_a_wrong_type():
 
 def test_the_manifest_gives_what_the_run_needs():
     """The entrypoint's config fits the cluster the manifest makes (the check the driver runs),
-    writes to the mounted volume by an absolute path, continues a retried job, and reaches its
-    HTTP service through the Service only with a token; the stop grace covers a checkpoint."""
+    keeps its state on a storage URI every node reaches with the same credentials (no shared
+    volume), works in the head's scratch volume by an absolute path, continues a retried job, and
+    reaches its HTTP service through the Service only with a token; the stop grace covers a checkpoint."""
     from covers_dist.config import load_config
     from covers_dist.runtime.placement import check_fits
 
@@ -92,6 +93,7 @@ def test_the_manifest_gives_what_the_run_needs():
     sets = [argv[i + 1] for i, a in enumerate(argv) if a == "--set"]
     cfg = load_config(argv[argv.index("--config") + 1], [*sets, f"runtime.run_dir={run_dir}"])
     assert Path(run_dir).is_absolute() and cfg.api.enabled and cfg.api.host == "0.0.0.0"
+    assert cfg.runtime.storage and cfg.runtime.storage.startswith("s3://")
 
     spec = job["spec"]["rayClusterSpec"]
     head = spec["headGroupSpec"]
@@ -113,8 +115,11 @@ def test_the_manifest_gives_what_the_run_needs():
     service = next(d for d in docs if d["kind"] == "Service")
     assert service["spec"]["selector"]["ray.io/originated-from-cr-name"] == job["metadata"]["name"]
     assert service["spec"]["ports"][0]["targetPort"] == cfg.api.port
-    claim = next(d for d in docs if d["kind"] == "PersistentVolumeClaim")
-    assert claim["spec"]["accessModes"] == ["ReadWriteMany"] and claim["spec"].get("storageClassName")
+    pods = [head["template"]["spec"], *(g["template"]["spec"] for g in spec["workerGroupSpecs"])]
+    for pod in pods:
+        (container,) = pod["containers"]
+        assert {"secretRef": {"name": "covers-s3"}} in container.get("envFrom", []), container["name"]
+        assert not any("persistentVolumeClaim" in v for v in pod.get("volumes", []))
 
 
 def test_the_dockerfile_follows_the_ray_image_conventions():

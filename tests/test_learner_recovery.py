@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from covers_dist.runtime.driver import Trainer
-from covers_dist.runtime.learner import PolicyLearner, live_state_path
+from covers_dist.runtime.learner import PolicyLearner, live_state_key
 from covers_dist.runtime.processes import list_processes
 from covers_dist.runtime.rollout import EpisodeSpec, RolloutWorker
 
@@ -40,12 +40,12 @@ def test_restarted_learner_resumes_its_state_and_applies_a_retried_update_once(b
     ref1 = reference.update(first, 0)
     ref2 = reference.update(second, 1)
 
-    crashed = PolicyLearner(cfg, 0, run_dir=str(tmp_path))
+    crashed = PolicyLearner(cfg, 0, storage=str(tmp_path))
     got1 = crashed.update(first, 0)
-    assert live_state_path(tmp_path, 0).is_file()
+    assert (tmp_path / live_state_key(0)).is_file()
     del crashed  # the process dies after the update, before the caller saw its result
 
-    restarted = PolicyLearner(cfg, 0, run_dir=str(tmp_path))  # what Ray does: the constructor again
+    restarted = PolicyLearner(cfg, 0, storage=str(tmp_path))  # what Ray does: the constructor again
     assert restarted.restored and restarted.version == 1
     retried = restarted.update(first, 0)  # the caller retries the same call
     assert restarted.version == 1 and retried[1] == got1[1] == ref1[1] == 1
@@ -110,8 +110,8 @@ def test_learner_killed_between_its_update_and_its_live_save_recovers(batches, t
         ref.append(reference.update(episodes, v))
         ref_states.append(reference.ppo.state_dict())
 
-    live = live_state_path(tmp_path, 0)
-    learner = PolicyLearner(cfg, 0, run_dir=str(tmp_path))
+    live = tmp_path / live_state_key(0)
+    learner = PolicyLearner(cfg, 0, storage=str(tmp_path))
     for v in range(lost_update - 1):
         learner.update(data[v], v)
 
@@ -133,7 +133,7 @@ def test_learner_killed_between_its_update_and_its_live_save_recovers(batches, t
         assert not live.is_file()  # nothing was saved yet: the restart is a fresh learner
     else:
         assert torch.load(live, weights_only=False)["version"] == base
-    restarted = PolicyLearner(cfg, 0, run_dir=str(tmp_path))  # what Ray does: the constructor again
+    restarted = PolicyLearner(cfg, 0, storage=str(tmp_path))  # what Ray does: the constructor again
     assert restarted.restored == (lost_update > 1) and restarted.version == base
     stats, version, weights = restarted.update(data[base], base)  # the caller retries the same call
     assert version == lost_update == ref[base][1]
@@ -150,27 +150,27 @@ def test_learner_killed_between_its_update_and_its_live_save_recovers(batches, t
         _equal(weights, ref[v][2])
         _same_stats(stats, ref[v][0])
     _same_state(restarted.ppo.state_dict(), ref_states[-1])
-    again = PolicyLearner(cfg, 0, run_dir=str(tmp_path))  # a later restart finds the newest state
+    again = PolicyLearner(cfg, 0, storage=str(tmp_path))  # a later restart finds the newest state
     assert again.version == len(data)
     _same_state(again.ppo.state_dict(), ref_states[-1])
 
 
 def test_unreadable_live_state_is_a_clear_error(batches, tmp_path):
     cfg, (first, _) = batches
-    PolicyLearner(cfg, 0, run_dir=str(tmp_path)).update(first, 0)
-    live_state_path(tmp_path, 0).write_bytes(b"not a torch file")
+    PolicyLearner(cfg, 0, storage=str(tmp_path)).update(first, 0)
+    (tmp_path / live_state_key(0)).write_bytes(b"not a torch file")
     with pytest.raises(RuntimeError, match="unreadable.*--resume"):
-        PolicyLearner(cfg, 0, run_dir=str(tmp_path))
+        PolicyLearner(cfg, 0, storage=str(tmp_path))
 
 
 def test_checkpoint_state_becomes_the_live_state(batches, tmp_path):
     cfg, (first, second) = batches
-    learner = PolicyLearner(cfg, 0, run_dir=str(tmp_path))
+    learner = PolicyLearner(cfg, 0, storage=str(tmp_path))
     learner.update(first, 0)
     saved = learner.state_dict()
     learner.update(second, 1)
     learner.load_state_dict(saved)  # a resume from a checkpoint older than the live state
-    assert PolicyLearner(cfg, 0, run_dir=str(tmp_path)).version == 1
+    assert PolicyLearner(cfg, 0, storage=str(tmp_path)).version == 1
 
 
 def _wait_for_new_pid(run_dir, role, old_pid, timeout_s=90):

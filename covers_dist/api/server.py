@@ -26,6 +26,7 @@ import yaml
 
 from ..config import Config, config_to_dict
 from ..runtime.processes import announce
+from ..runtime.run_storage import storage_location
 from .sources import LocalSource, RaySource, Source
 
 __all__ = [
@@ -218,7 +219,7 @@ class SupervisedApiServer:
 
     :meth:`check` (the driver calls it after every iteration) starts a new server if the old one
     stopped, on the port the first one bound (so clients keep their URL). The service's PID is
-    recorded in ``RUN_DIR/processes/api.json``.
+    recorded in ``processes/api.json`` of the run's storage.
     """
 
     def __init__(self, cfg: Config, source: Any, log: Any = print) -> None:
@@ -238,7 +239,7 @@ class SupervisedApiServer:
             port = int(self.handle.url.rsplit(":", 1)[1])
             self.cfg = dataclasses.replace(self.cfg, api=dataclasses.replace(self.cfg.api, port=port))
         proc = getattr(self.handle, "proc", None)
-        announce(self.cfg.runtime.run_dir, "api", pid=proc.pid if proc is not None else os.getpid())
+        announce(storage_location(self.cfg), "api", pid=proc.pid if proc is not None else os.getpid())
         return self
 
     def check(self) -> None:

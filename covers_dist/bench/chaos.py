@@ -16,8 +16,11 @@ batch (policy and decision), every episode index logged exactly once, and every 
 weights (exactly equal, or the largest difference; a NaN anywhere is a difference).
 ``--node-loss workers|learners`` runs a different fault instead: a local 2-node cluster
 (:mod:`covers_dist.runtime.local_cluster`) where the node holding the rollout workers (or the
-learners) is removed mid-run; the run continues on the surviving node. Target: identical
-assignments and weights after >= 20 kills.
+learners) is removed mid-run; the run continues on the surviving node. With ``--isolated-disk``
+that node shares no disk with the driver (its own mount namespace, an empty tmpfs over the run
+directories; root only) and the run's state goes through ``runtime.storage`` (a URI every node
+reaches), as on a cluster without a shared filesystem. Target: identical assignments and
+weights after >= 20 kills.
 
 The verdict (exit status 0, ``"verdict": true``) needs the faults as well as the equality: every
 kind named in ``--kinds`` killed at least once (with ``--max-kills N``, the last kills go to the
@@ -47,6 +50,8 @@ from typing import Any, Callable, NoReturn
 
 from ..config import Config, load_config, load_run_config
 from ..runtime.processes import list_processes, running
+from ..runtime.run_storage import storage_location
+from ..storage import is_uri, storage_child
 
 KINDS = ("worker", "learner", "clustering", "api", "driver")
 TARGET_KILLS = 20
@@ -66,6 +71,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--node-loss", choices=("workers", "learners"),
         help="instead of kills: remove the node holding the rollout workers (or the learners) of a 2-node cluster",
+    )  # fmt: skip
+    p.add_argument(
+        "--isolated-disk", action="store_true",
+        help="--node-loss: the second node shares no disk with the driver (its own mount namespace with an empty "
+             "tmpfs over the run directories; root only); needs --set runtime.storage=URI that every node reaches",
     )  # fmt: skip
     p.add_argument("--lose-after", type=int, default=3,
                    help="--node-loss: iterations before the node goes, 1 to the run's iterations - 1 "
@@ -209,8 +219,11 @@ def failures(report: dict[str, Any], kinds: set[str] | None = None) -> list[str]
 class ChaosRun:
     """``covers-dist train`` in a child process, killed and resumed as the schedule says."""
 
-    def __init__(self, cfg_path: str, overrides: list[str], run_dir: Path, log: Callable[[str], None]) -> None:
+    def __init__(
+        self, cfg_path: str, overrides: list[str], run_dir: Path, storage: str, log: Callable[[str], None]
+    ) -> None:
         self.run_dir = run_dir
+        self.storage = storage  # where the run's processes record themselves
         self.log = log
         sets = [x for o in overrides for x in ("--set", o)]
         self.first = ["train", "--config", cfg_path, *sets, "--run-dir", str(run_dir)]
@@ -227,7 +240,7 @@ class ChaosRun:
         )
 
     def _records(self) -> list[dict[str, Any]]:
-        return list_processes(self.run_dir)
+        return list_processes(self.storage)
 
     def _victims(self, kinds: set[str]) -> dict[str, list[dict[str, Any]]]:
         """Live processes of the current driver's run, by kind."""
@@ -311,8 +324,13 @@ class ChaosRun:
 
 
 # ---- node loss ------------------------------------------------------------------------------------
-def node_loss_run(cfg: Config, lose: str, lose_after: int, log: Callable[[str], None]) -> dict[str, Any]:
+def node_loss_run(
+    cfg: Config, lose: str, lose_after: int, log: Callable[[str], None], hide: list[Path] | None = None
+) -> dict[str, Any]:
     """The run on a 2-node loopback cluster whose node holding the ``lose`` actors is removed mid-run.
+
+    ``hide``: the second node shares no disk with the driver: it runs in its own mount namespace
+    with an empty tmpfs over each of these directories (:meth:`LocalCluster.add_isolated_node`).
 
     Placement is forced with placeholder actors that hold every free CPU of a node while the run's
     actors are placed: the rollout workers (``workers``) or the learners (``learners``, which then
@@ -344,10 +362,12 @@ def node_loss_run(cfg: Config, lose: str, lose_after: int, log: Callable[[str], 
         return actor
 
     head_cpus = workers + room
+    storage = storage_location(cfg)
     with LocalCluster(head_cpus) as cluster:
-        node = cluster.add_node(workers if lose == "workers" else room)
         cfg = dataclasses.replace(cfg, runtime=dataclasses.replace(cfg.runtime, ray_address=cluster.address))
         ray.init(address=cluster.address, log_to_driver=False)
+        cpus = workers if lose == "workers" else room
+        node = cluster.add_isolated_node(cpus, hide) if hide else cluster.add_node(cpus)
         head_id, other_id = cluster.head.node_id, node.node_id
         if lose == "workers":
             holders = [hold(head_id, head_cpus)]  # the workers go to the other node
@@ -367,7 +387,7 @@ def node_loss_run(cfg: Config, lose: str, lose_after: int, log: Callable[[str], 
                     log(f"the run ended after iteration {trainer.iteration}, before the node could go")
                     return
                 time.sleep(0.05)
-            before.update({_name(r): r.get("node", "") for r in list_processes(cfg.runtime.run_dir)})
+            before.update({_name(r): r.get("node", "") for r in list_processes(storage)})
             for h in holders:
                 ray.kill(h)
             cluster.remove_node(node)
@@ -383,7 +403,7 @@ def node_loss_run(cfg: Config, lose: str, lose_after: int, log: Callable[[str], 
             ended.set()
             trainer.close()
         killer.join(5)
-        after = {_name(r): r.get("node", "") for r in list_processes(cfg.runtime.run_dir)}
+        after = {_name(r): r.get("node", "") for r in list_processes(storage)}
         return {
             "lost": lose,
             "lose_after": lose_after,
@@ -391,6 +411,7 @@ def node_loss_run(cfg: Config, lose: str, lose_after: int, log: Callable[[str], 
             "on_lost_node": sorted(n for n, where in before.items() if where == other_id),
             "moved_to_head": sorted(n for n, where in after.items() if before.get(n) == other_id and where == head_id),
             "wall_s": round(time.monotonic() - t0, 1),
+            "isolated_disk": bool(hide),
         }
 
 
@@ -457,10 +478,19 @@ def run(args: argparse.Namespace) -> int:
     base = load_config(args.config, args.overrides)  # validates the config before anything runs
     if args.node_loss:
         _check_lose_after(args.lose_after, base)
+    if args.isolated_disk and not args.node_loss:
+        _fail("--isolated-disk goes with --node-loss (the second node of the 2-node cluster is the isolated one)")
+    if args.isolated_disk and not (base.runtime.storage and is_uri(base.runtime.storage)):
+        _fail("--isolated-disk needs --set runtime.storage=URI (e.g. s3://bucket/prefix): the isolated node cannot "
+              "see a local path, and the run's state must reach every node")  # fmt: skip
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="covers-chaos-"))
     out.mkdir(parents=True, exist_ok=True)
     log = (lambda m: print(m, file=sys.stderr, flush=True)) if args.json else (lambda m: print(m, flush=True))
-    serial = [*args.overrides, "runtime.serial=true", f"runtime.run_dir={out / 'clean'}", "api.enabled=false"]
+    def own_storage(name: str) -> list[str]:  # each run its own part of a given storage
+        return [f"runtime.storage={storage_child(base.runtime.storage, name)}"] if base.runtime.storage else []
+
+    serial = [*args.overrides, "runtime.serial=true", f"runtime.run_dir={out / 'clean'}", "api.enabled=false",
+              *own_storage("clean")]  # fmt: skip
     log(f"clean run ({base.runtime.total_env_steps} env steps, serial) in {out / 'clean'}")
     quiet = contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext()
     with quiet:  # progress lines of the runs in this process: not on stdout when it carries JSON
@@ -468,12 +498,15 @@ def run(args: argparse.Namespace) -> int:
     report: dict[str, Any] = {"config": args.config, "seed": base.seed, "clean_wall_s": round(clean_s, 1)}
     chaos_dir = out / ("node-loss" if args.node_loss else "chaos")
     if args.node_loss:
-        cfg = load_config(args.config, [*args.overrides, "runtime.serial=false", f"runtime.run_dir={chaos_dir}"])
+        sets = [*args.overrides, "runtime.serial=false", f"runtime.run_dir={chaos_dir}", *own_storage(chaos_dir.name)]
+        cfg = load_config(args.config, sets)
         with quiet:
-            report["node_loss"] = node_loss_run(cfg, args.node_loss, args.lose_after, log)
+            hide = [out] if args.isolated_disk else None
+            report["node_loss"] = node_loss_run(cfg, args.node_loss, args.lose_after, log, hide)
     else:
-        chaos = [*args.overrides, "runtime.serial=false", "api.enabled=true", "api.port=0"]
-        runner = ChaosRun(args.config, chaos, chaos_dir, log)
+        chaos = [*args.overrides, "runtime.serial=false", "api.enabled=true", "api.port=0", *own_storage(chaos_dir.name)]
+        storage = storage_location(load_config(args.config, [*chaos, f"runtime.run_dir={chaos_dir}"]))
+        runner = ChaosRun(args.config, chaos, chaos_dir, storage, log)
         log(f"chaos run in {chaos_dir}: a kill every {interval[0]:g}-{interval[1]:g} s among {sorted(kinds)}")
         report["chaos_wall_s"] = round(runner.run(random.Random(args.seed), interval, kinds, args.max_kills), 1)
         report["kinds"] = sorted(kinds)
@@ -510,7 +543,8 @@ def _print(r: dict[str, Any]) -> None:
         print(f"chaos run: {r['chaos_wall_s']} s, {r['kills_total']} kills ({kinds}); target >= {TARGET_KILLS}")
     if "node_loss" in r:
         n = r["node_loss"]
-        print(f"node loss ({n['lost']}): removed={n['node_removed']} on the lost node: {n['on_lost_node']} "
+        disk = ", isolated disk" if n.get("isolated_disk") else ""
+        print(f"node loss ({n['lost']}{disk}): removed={n['node_removed']} on the lost node: {n['on_lost_node']} "
               f"restarted on the head: {n['moved_to_head']} ({n['wall_s']} s)")  # fmt: skip
     print(
         f"{c['batches']} batches: assignments identical {c['assignments_identical']}, every episode assigned once "

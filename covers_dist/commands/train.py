@@ -36,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
     import signal
 
     from ..runtime.driver import holds_a_run, train
+    from ..runtime.run_storage import fetch_run
 
     for sig in (signal.SIGINT, signal.SIGTERM):  # after the run has stopped, a signal has nothing left to stop
         signal.signal(sig, lambda *_: None)
@@ -54,8 +55,9 @@ def run(args: argparse.Namespace) -> int:
         if args.resume_existing and args.overwrite:
             raise SystemExit("covers-dist train: --resume-existing and --overwrite contradict each other")
         cfg = config_from_args(args)
-        if args.resume_existing and holds_a_run(cfg.runtime.run_dir):
+        if args.resume_existing and holds_a_run(cfg):
             print(f"{cfg.runtime.run_dir} holds a run: continuing it with its own config", flush=True)
+            fetch_run(cfg)  # on a fresh node the run is on its storage only
             result = train(resume_dir=cfg.runtime.run_dir, services=_http_service)
         else:
             result = train(cfg, overwrite=args.overwrite, services=_http_service)

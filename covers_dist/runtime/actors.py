@@ -9,7 +9,7 @@
   policy's state after its newest update (see :mod:`.learner`); a retried update is applied once;
 * evaluation workers: rollout workers that run evaluation episodes (``eval.num_cpus`` each).
 
-Every actor records its PID in ``RUN_DIR/processes/`` when it starts (:mod:`.processes`).
+Every actor records its PID in ``processes/`` of the run's storage when it starts (:mod:`.processes`).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from ..config import Config
 from .clustering_service import ClusteringService
 from .learner import PolicyLearner
 from .processes import announce
+from .run_storage import storage_location
 from .rollout import EVAL_WORKER_INDEX, RolloutWorker, split_first_frames
 
 __all__ = ["rollout_actor", "eval_actor", "clustering_actor", "learner_actor", "clustering_actor_name", "run_namespace"]
@@ -33,8 +34,8 @@ MAX_RESTARTS = 100
 ACTOR_NAMESPACE = "covers-dist"
 
 
-def _announce(run_dir: str | None, role: str, index: int | None = None) -> None:
-    announce(run_dir, role, index, node=ray.get_runtime_context().get_node_id())
+def _announce(storage: str | None, role: str, index: int | None = None) -> None:
+    announce(storage, role, index, node=ray.get_runtime_context().get_node_id())
 
 
 def _lower_priority(cfg: Config) -> None:
@@ -46,10 +47,10 @@ def _lower_priority(cfg: Config) -> None:
 
 
 class _RolloutHost(RolloutWorker):
-    def __init__(self, cfg: Config, worker_index: int = 0, run_dir: str | None = None) -> None:
+    def __init__(self, cfg: Config, worker_index: int = 0, storage: str | None = None) -> None:
         _lower_priority(cfg)
         super().__init__(cfg, worker_index)
-        _announce(run_dir, "eval" if worker_index >= EVAL_WORKER_INDEX else "worker", worker_index)
+        _announce(storage, "eval" if worker_index >= EVAL_WORKER_INDEX else "worker", worker_index)
 
     def sample_split(self, specs, policy_id, version, handle, k):  # noqa: ANN001
         episodes = self.sample(specs, policy_id, version, handle)
@@ -63,16 +64,16 @@ class _RolloutHost(RolloutWorker):
 
 
 class _LearnerHost(PolicyLearner):
-    def __init__(self, cfg: Config, policy_id: int, device: str | None = None, run_dir: str | None = None) -> None:
+    def __init__(self, cfg: Config, policy_id: int, device: str | None = None, storage: str | None = None) -> None:
         _lower_priority(cfg)
-        super().__init__(cfg, policy_id, device, run_dir)
-        _announce(run_dir, "learner", policy_id)
+        super().__init__(cfg, policy_id, device, storage)
+        _announce(storage, "learner", policy_id)
 
 
 class _ClusteringHost(ClusteringService):
-    def __init__(self, cfg: Config, run_dir: str) -> None:
-        super().__init__(cfg, run_dir)
-        _announce(run_dir, "clustering")
+    def __init__(self, cfg: Config, storage: str) -> None:
+        super().__init__(cfg, storage)
+        _announce(storage, "clustering")
 
 
 def rollout_actor(cfg: Config) -> Any:
@@ -89,21 +90,22 @@ def clustering_actor_name(cfg: Config) -> str:
 
 
 def run_namespace(cfg: Config) -> str:
-    """The Ray namespace of this run's clustering actor: one per run directory (its absolute path),
-    so two runs of one config on one cluster never share a bank; a resumed run gets its own back.
-    Services find the actor by name in every namespace (``covers-dist serve --address``)."""
+    """The Ray namespace of this run's clustering actor: one per run storage (``runtime.storage``,
+    else the run directory's absolute path), so two runs of one config on one cluster never share a
+    bank; a resumed run gets its own back. Services find the actor by name in every namespace
+    (``covers-dist serve --address``)."""
     import hashlib
 
-    where = os.path.abspath(cfg.runtime.run_dir)
+    where = storage_location(cfg)
     return f"{ACTOR_NAMESPACE}-{hashlib.sha256(where.encode()).hexdigest()[:12]}"
 
 
-def clustering_actor(cfg: Config, run_dir: str) -> Any:
+def clustering_actor(cfg: Config, storage: str) -> Any:
     """Create (or get) the named clustering actor of this run."""
     cls = ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)(_ClusteringHost)
     return cls.options(
         name=clustering_actor_name(cfg), namespace=run_namespace(cfg), get_if_exists=True, lifetime=None
-    ).remote(cfg, run_dir)
+    ).remote(cfg, storage)
 
 
 def learner_actor(cfg: Config) -> Any:

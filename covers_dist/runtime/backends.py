@@ -31,7 +31,7 @@ class SerialBackend:
 
         self.cfg = cfg
         self.workers = [RolloutWorker(cfg, i) for i in range(cfg.runtime.num_workers)]
-        self.clustering = ClusteringService(cfg, str(run_dir))
+        self.clustering = ClusteringService(cfg, _storage(cfg, run_dir))
         self.learners: dict[int, Any] = {}
         self._eval: Any = None
 
@@ -127,10 +127,10 @@ class RayBackend:
         self.cfg = cfg
         if cfg.runtime.check_fit:  # before any actor is queued: one that never fits would wait forever
             check_fits(cfg, [n["Resources"] for n in ray.nodes() if n.get("Alive")])
-        self.run_dir = str(Path(run_dir).resolve())  # actors may run in another working directory
+        self.storage = _storage(cfg, run_dir)  # what every actor, on any node, writes its state to
         self._learner_cls = learner_actor(cfg)
-        self.workers = [rollout_actor(cfg).remote(cfg, i, self.run_dir) for i in range(cfg.runtime.num_workers)]
-        self.clustering = clustering_actor(cfg, self.run_dir)
+        self.workers = [rollout_actor(cfg).remote(cfg, i, self.storage) for i in range(cfg.runtime.num_workers)]
+        self.clustering = clustering_actor(cfg, self.storage)
         self.learners: dict[int, Any] = {}
         self._spare: dict[int, Any] = {}  # learners started ahead of their policy (prepare_learner)
         self._eval: RayEvalExecutors | None = None
@@ -218,14 +218,14 @@ class RayBackend:
 
     def _new_learner(self, policy_id: int) -> Any:
         """A learner actor that persists its state after every update (a restart reloads it)."""
-        return self._learner_cls.remote(self.cfg, policy_id, None, self.run_dir)
+        return self._learner_cls.remote(self.cfg, policy_id, None, self.storage)
 
     def call_learner(self, policy_id: int, method: str, *args: Any) -> Any:
         return self.ray.get(getattr(self.learners[policy_id], method).remote(*args))
 
     def eval_executors(self) -> "RayEvalExecutors":
         if self._eval is None:
-            self._eval = RayEvalExecutors(self.cfg, self.run_dir)
+            self._eval = RayEvalExecutors(self.cfg, self.storage)
             self._check_probes({f"evaluation worker {i}": a for i, a in enumerate(self._eval.actors)})
         return self._eval
 
@@ -241,14 +241,14 @@ class RayBackend:
 class RayEvalExecutors:
     """``eval.workers`` evaluation actors (rollout workers reserving ``eval.num_cpus`` each)."""
 
-    def __init__(self, cfg: Config, run_dir: str | None = None) -> None:
+    def __init__(self, cfg: Config, storage: str | None = None) -> None:
         import ray
 
         from .actors import eval_actor
 
         self.ray = ray
         cls = eval_actor(cfg)
-        self.actors = [cls.remote(cfg, EVAL_WORKER_INDEX + i, run_dir) for i in range(cfg.eval.workers)]
+        self.actors = [cls.remote(cfg, EVAL_WORKER_INDEX + i, storage) for i in range(cfg.eval.workers)]
 
     @property
     def size(self) -> int:
@@ -263,3 +263,9 @@ class RayEvalExecutors:
                 self.ray.kill(a, no_restart=True)
             except Exception:  # noqa: BLE001 - already gone
                 pass
+
+
+def _storage(cfg: Config, run_dir: Path) -> str:
+    """The run's storage (``runtime.storage``, else ``run_dir``, absolute: actors may run in
+    another working directory)."""
+    return cfg.runtime.storage or str(Path(run_dir).resolve())

@@ -26,6 +26,7 @@ import shutil
 from pathlib import Path
 from typing import Any, Callable
 
+from ..clustering.persistence import STATE_FILE as BANK_INDEX  # the file every saved bank holds
 from ..clustering.persistence import CheckpointError, file_sha256  # one error type, one hash
 
 __all__ = ["CheckpointError", "write_checkpoint", "latest_valid_checkpoint", "verify_checkpoint", "list_checkpoints"]
@@ -91,13 +92,27 @@ def verify_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(
             f"checkpoint {path.name}: format version {manifest.get('format_version')!r}, expected {FORMAT_VERSION}"
         )
-    for rel, digest in manifest.get("files", {}).items():
+    files = manifest.get("files", {})
+    for rel, digest in files.items():
         f = path / rel
         if not f.is_file():
             raise CheckpointError(f"checkpoint {path.name}: file {rel} is missing")
         if file_sha256(f) != digest:
             raise CheckpointError(f"checkpoint {path.name}: file {rel} is corrupt (checksum mismatch)")
+    missing = [rel for rel in needed_files(path) if rel not in files]
+    if missing:
+        raise CheckpointError(f"checkpoint {path.name}: the manifest lacks {', '.join(missing)}, which a restore needs")
     return manifest
+
+
+def needed_files(path: Path) -> list[str]:
+    """What a restore reads: the driver's state, the config, the bank and each policy's learner."""
+    needed = ["driver.json", "config.yaml", f"bank/{BANK_INDEX}"]
+    try:
+        policies = json.loads((path / "driver.json").read_text()).get("policies", [])
+    except (OSError, ValueError, AttributeError):
+        return needed  # driver.json is missing or unreadable: reported as missing from the manifest
+    return needed + [f"learners/policy-{int(pid)}.pt" for pid in policies]
 
 
 def latest_valid_checkpoint(run_dir: str | Path, log: Callable[[str], None] = print) -> Path | None:

@@ -9,15 +9,19 @@ the driver calls it directly, and ``covers-dist serve --run-dir`` loads one read
   assignment; weights are loaded only when a version changed.
 * Single-policy methods (``equi``, ``cnn``) use a bank capped at one policy, so every batch is
   recalled to policy 0 (and the ARI shows what one policy for every group means).
-* Crash safety: after each assignment the bank and the service's own counters are persisted
-  atomically under ``RUN_DIR/clustering_live/``; a restarted actor reloads them, and an
-  assignment retried for episodes the bank already holds returns the stored record (no doubles).
+* Crash safety: after each assignment the bank and the service's own counters are written, as one
+  object, to ``clustering_live/state.tar`` in the run's storage (``runtime.storage``, see
+  :mod:`.run_storage`); a restarted actor, on any node, reloads them, and an assignment retried
+  for episodes the bank already holds returns the stored record (no doubles).
+* Checkpoints: the bank travels to the driver as bytes (:meth:`snapshot`) and back
+  (:meth:`restore`), so the driver writes it into its checkpoint wherever this actor runs.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import tempfile
 import threading
 from pathlib import Path
 from typing import Any
@@ -30,22 +34,25 @@ from ..clustering.features import SharedFeatures
 from ..config import Config, config_to_dict
 from ..envs import suite_layout
 from ..models import build_actor_critic
+from ..storage import pack_dir, unpack_dir
 from .learner import policy_seed
 from .ray_setup import resolve_weights
+from .run_storage import CLUSTERING_LIVE, open_storage
 
 __all__ = ["ClusteringService"]
 
 SINGLE_POLICY_METHODS = ("equi", "cnn")
 #: Metric-row keys of evaluation passes (covers_dist.evaluation.metrics.metric_row).
 EVAL_PREFIX = "eval/"
-LIVE_DIR = "clustering_live"
+#: The live state's object in the run's storage
+LIVE_STATE = f"{CLUSTERING_LIVE}/state.tar"
 
 
 class ClusteringService:
-    def __init__(self, cfg: Config, run_dir: str | None = None, read_only: bool = False) -> None:
+    def __init__(self, cfg: Config, storage: str | None = None, read_only: bool = False) -> None:
         torch.set_num_threads(cfg.runtime.torch_threads)
         self.cfg = cfg
-        self.run_dir = Path(run_dir) if run_dir else None
+        self.store = open_storage(storage) if storage and not read_only else None
         self.read_only = read_only
         self.layout = suite_layout(cfg.env.suite, cfg.env.image_size)
         self.models: dict[int, Any] = {}
@@ -58,8 +65,8 @@ class ClusteringService:
         self.evaluation: dict[str, Any] = {}
         self.group_names: dict[int, str] = {i: t for i, t in enumerate(cfg.env.tasks)}
         self.bank = self._new_bank()
-        if self.run_dir is not None and (self.run_dir / LIVE_DIR / "service.json").is_file() and not read_only:
-            self.load(str(self.run_dir / LIVE_DIR))
+        if self.store is not None and self.store.exists(LIVE_STATE):
+            self._restore(self.store.read_bytes(LIVE_STATE), persist=False)
 
     # ---- construction ------------------------------------------------------------------------
     def _feature_fn(self) -> Any:
@@ -260,10 +267,26 @@ class ClusteringService:
             self.versions.clear()
             for pid, w in (weights or {}).items():
                 self.sync_weights({int(pid): (-1, w)})
-            if not self.read_only and self.run_dir is not None and path != self.run_dir / LIVE_DIR:
-                self._persist()
+
+
+    def snapshot(self) -> bytes:
+        """:meth:`save`'s files as one archive (what the driver writes into a checkpoint's ``bank/``)."""
+        with self._lock, tempfile.TemporaryDirectory(prefix="covers-bank-") as tmp:
+            self.save(tmp)
+            return pack_dir(tmp)
+
+    def restore(self, data: bytes, weights: dict[int, Any] | None = None) -> None:
+        """Load :meth:`snapshot`'s bytes (a checkpoint's ``bank/``); they become the live state."""
+        self._restore(data, weights, persist=True)
+
+    def _restore(self, data: bytes, weights: dict[int, Any] | None = None, persist: bool = True) -> None:
+        with self._lock, tempfile.TemporaryDirectory(prefix="covers-bank-") as tmp:
+            unpack_dir(data, tmp)
+            self.load(tmp, weights)
+        if persist:
+            self._persist()
 
     def _persist(self) -> None:
-        if self.run_dir is None or self.read_only:
+        if self.store is None:
             return
-        self.save(str(self.run_dir / LIVE_DIR))
+        self.store.write_bytes(LIVE_STATE, self.snapshot())

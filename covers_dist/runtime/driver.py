@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import shutil
 import signal
+import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -35,17 +36,16 @@ import yaml
 from ..config import Config, config_to_dict, load_run_config
 from ..envs.stream import TaskStream
 from .checkpoint import latest_valid_checkpoint
-from .clustering_service import LIVE_DIR as CLUSTERING_LIVE_DIR
 from .clustering_service import SINGLE_POLICY_METHODS
 from .evaluation import PeriodicEvaluation
-from .learner import LIVE_DIR
 from .logfiles import remove_log
 from .metrics import MetricsWriter, Progress
 from .processes import announce
 from .ray_setup import check_run_dir_outlives_the_job
 from .rollout import EpisodeSpec
+from .run_storage import clear_storage, drop_live_state, fetch_run, storage_holds_a_run, storage_location
 from .tally import EpisodeTally, iteration_row
-from .trainer_checkpoint import drop_live_states, restore_trainer, save_trainer
+from .trainer_checkpoint import restore_trainer, save_trainer
 from .weights import PolicyWeights
 
 __all__ = ["Trainer", "train", "holds_a_run"]
@@ -73,12 +73,12 @@ class Trainer:
         self._stop = False
         self._resume_from: Path | None = None
         if resume:
+            fetch_run(cfg, log=self.log)  # a driver on a fresh node: the newest checkpoint from the storage
             self._resume_from = latest_valid_checkpoint(self.run_dir, log=self.log)
             if self._resume_from is None:
                 raise FileNotFoundError(f"no valid checkpoint to resume from in {self.run_dir}/checkpoints")
-        else:  # a new run: live states left by an earlier run in this directory are not this run's
-            drop_live_states(self.run_dir)
-            shutil.rmtree(self.run_dir / CLUSTERING_LIVE_DIR, ignore_errors=True)
+        else:  # a new run: live states left by an earlier run in this storage are not this run's
+            drop_live_state(cfg)
         if cfg.runtime.serial:
             from .backends import SerialBackend
 
@@ -211,7 +211,7 @@ class Trainer:
                 restore_trainer(self, self._resume_from)
             else:
                 self.start_policy(0)
-            announce(self.run_dir, "driver")  # recorded once the loop runs
+            announce(storage_location(self.cfg), "driver")  # recorded once the loop runs
             progress = Progress(rt.total_env_steps, rt.log_every_s, self.env_steps)
             self.clock_start, self.clock_steps = time.monotonic(), self.env_steps
             row: dict[str, Any] = {}
@@ -278,10 +278,32 @@ def _in_order(plan: list[list[EpisodeSpec]]) -> list[EpisodeSpec]:
 def _field(item: Any, name: str) -> Any:
     return item[name] if isinstance(item, dict) else getattr(item, name)
 
-def holds_a_run(run_dir: str | Path) -> bool:
-    """Whether ``run_dir`` holds a run's checkpoints (a new run there needs ``overwrite``)."""
-    ckpts = Path(run_dir) / "checkpoints"
-    return ckpts.is_dir() and any(ckpts.iterdir())
+def holds_a_run(cfg: Config) -> bool:
+    """Whether the run directory or the storage of ``cfg`` holds a run's checkpoints (a new run
+    there needs ``overwrite``)."""
+    ckpts = Path(cfg.runtime.run_dir) / "checkpoints"
+    return (ckpts.is_dir() and any(ckpts.iterdir())) or storage_holds_a_run(cfg)
+
+
+def _run_config(resume_dir: str) -> Config:
+    """The saved config of the run to resume: ``RUN_DIR/config.yaml``, or, for a storage URI
+    (``--resume s3://bucket/run``), the storage's copy (the run directory it names is then
+    filled from the storage)."""
+    from ..storage import Storage, StorageError, is_uri
+
+    if is_uri(resume_dir):
+        try:
+            text = Storage(resume_dir).read_bytes("config.yaml")
+        except StorageError as e:
+            raise FileNotFoundError(f"{resume_dir.split('?', 1)[0]} holds no run to resume ({e})") from e
+        with tempfile.NamedTemporaryFile("wb", suffix=".yaml") as fh:
+            fh.write(text)
+            fh.flush()
+            return load_run_config(fh.name)
+    cfg_path = Path(resume_dir) / "config.yaml"
+    if not cfg_path.is_file():
+        raise FileNotFoundError(f"{resume_dir} is not a run directory (no config.yaml)")
+    return load_run_config(cfg_path)
 
 
 def train(
@@ -299,20 +321,19 @@ def train(
     ``check()``, which is called after every iteration (to restart what stopped).
     """
     if resume_dir is not None:
-        cfg_path = Path(resume_dir) / "config.yaml"
-        if not cfg_path.is_file():
-            raise FileNotFoundError(f"{resume_dir} is not a run directory (no config.yaml)")
-        cfg = load_run_config(cfg_path)
+        cfg = _run_config(resume_dir)
     assert cfg is not None
     check_run_dir_outlives_the_job(cfg.runtime.run_dir)
     run_dir = Path(cfg.runtime.run_dir)
-    if resume_dir is None and holds_a_run(run_dir):
+    if resume_dir is None and holds_a_run(cfg):
         if not overwrite:
+            where = f"{run_dir} (storage {cfg.runtime.storage})" if cfg.runtime.storage else str(run_dir)
             raise FileExistsError(
-                f"{run_dir} already holds a run: continue it with --resume {run_dir}, "
+                f"{where} already holds a run: continue it with --resume {run_dir}, "
                 "choose another --run-dir, or pass --overwrite to start over"
             )
-        for name in ("checkpoints", CLUSTERING_LIVE_DIR, LIVE_DIR, "tb"):
+        clear_storage(cfg)
+        for name in ("checkpoints", "learners_live", "clustering_live", "processes", "tb"):
             shutil.rmtree(run_dir / name, ignore_errors=True)
         for name in ("metrics.jsonl", "episodes.jsonl", "eval.jsonl"):
             remove_log(run_dir, name)  # with its rotated segments

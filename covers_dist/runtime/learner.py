@@ -5,23 +5,22 @@ when the clustering creates the policy). Weights leave the learner as CPU state 
 model's documented mode (see :meth:`covers_dist.models` ``get_weights``), tagged with a version
 that increases by one per update, so workers pull them only when they changed.
 
-Surviving a crash (``run_dir`` given, as on Ray): after every update the learner writes its whole
+Surviving a crash (``storage`` given, as on Ray): after every update the learner writes its whole
 state (weights, Adam moments, schedule counters, shuffling RNG, version) and the result of its
-last two updates to ``RUN_DIR/learners_live/policy-N.pt``, atomically, before it returns. A
-restarted actor (Ray runs the constructor again) loads that file, so it comes back with the
-policy's newest weights, optimizer state and version instead of fresh random weights. Updates
-carry the version they start from (``base_version``): a retried call whose update was already
-applied returns the stored result instead of applying it again, so every update is applied
-exactly once, and a re-executed call (Ray's lineage reconstruction of lost weights) returns the
-same weights. The live file, not the object store or the last checkpoint, is the source because
-it is the only one that is current after every update and outlives both the process and its node
-(``runtime.run_dir`` is on storage every node mounts, see deploy/README.md).
+last two updates to ``learners_live/policy-N.pt`` in the run's storage (``runtime.storage``, see
+:mod:`.run_storage`), whole, before it returns. A restarted actor (Ray runs the constructor
+again, on this node or another) loads that object, so it comes back with the policy's newest
+weights, optimizer state and version instead of fresh random weights. Updates carry the version
+they start from (``base_version``): a retried call whose update was already applied returns the
+stored result instead of applying it again, so every update is applied exactly once, and a
+re-executed call (Ray's lineage reconstruction of lost weights) returns the same weights. The live
+object, not the object store or the last checkpoint, is the source because it is the only one
+that is current after every update and outlives both the process and its node.
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
+import io
 from typing import Any
 
 import torch
@@ -30,11 +29,10 @@ from ..config import Config
 from ..envs import suite_layout
 from ..models import build_actor_critic
 from ..ppo import PPOLearner
+from ..storage import StorageError
+from .run_storage import LEARNERS_LIVE, open_storage
 
-__all__ = ["PolicyLearner", "policy_seed", "LIVE_DIR", "live_state_path"]
-
-#: Directory of the run that holds each learner's state after its newest update.
-LIVE_DIR = "learners_live"
+__all__ = ["PolicyLearner", "policy_seed", "live_state_key"]
 #: Results kept for retried updates: the newest one and the one before (pipelined loop: the
 #: weights workers sample with and the update still in flight).
 KEEP_RESULTS = 2
@@ -45,14 +43,15 @@ def policy_seed(base_seed: int, policy_id: int) -> int:
     return base_seed * 10_007 + policy_id
 
 
-def live_state_path(run_dir: str | Path, policy_id: int) -> Path:
-    return Path(run_dir) / LIVE_DIR / f"policy-{policy_id}.pt"
+def live_state_key(policy_id: int) -> str:
+    """Where in the run's storage the learner of ``policy_id`` keeps its live state."""
+    return f"{LEARNERS_LIVE}/policy-{policy_id}.pt"
 
 
 class PolicyLearner:
     """Owns one policy's network, its PPO optimizer and its weight version."""
 
-    def __init__(self, cfg: Config, policy_id: int, device: str | None = None, run_dir: str | None = None) -> None:
+    def __init__(self, cfg: Config, policy_id: int, device: str | None = None, storage: str | None = None) -> None:
         self.cfg = cfg
         self.policy_id = policy_id
         self.device = device or ("cuda" if cfg.runtime.num_gpus > 0 and torch.cuda.is_available() else "cpu")
@@ -63,9 +62,10 @@ class PolicyLearner:
         self.version = 0
         #: version after an update -> (statistics, weights) of that update, newest KEEP_RESULTS
         self.results: dict[int, tuple[dict[str, Any], dict[str, torch.Tensor]]] = {}
-        self.live_path = live_state_path(run_dir, policy_id) if run_dir else None
+        self.store = open_storage(storage) if storage else None
+        self.live_key = live_state_key(policy_id)
         self.restored = False
-        if self.live_path is not None and self.live_path.is_file():
+        if self.store is not None and self.store.exists(self.live_key):
             self._load_live()
 
     def probe(self) -> Any:
@@ -115,7 +115,7 @@ class PolicyLearner:
         if base_version > self.version:
             raise RuntimeError(
                 f"learner of policy {self.policy_id} is at version {self.version} but an update from version "
-                f"{base_version} was requested: its state is older than the run's (was {LIVE_DIR}/ removed?)"
+                f"{base_version} was requested: its state is older than the run's (was {LEARNERS_LIVE}/ removed?)"
             )
         raise RuntimeError(
             f"learner of policy {self.policy_id} (version {self.version}) no longer holds the result of the "
@@ -133,20 +133,24 @@ class PolicyLearner:
 
     # ---- the live state --------------------------------------------------------------------------
     def _save_live(self) -> None:
-        if self.live_path is None:
+        if self.store is None:
             return
-        self.live_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.live_path.with_name(f".{self.live_path.name}.{os.getpid()}.tmp")
-        torch.save({**self.state_dict(), "results": self.results}, tmp)
-        os.replace(tmp, self.live_path)  # a crash leaves the old or the new file, never half of one
+        buf = io.BytesIO()
+        torch.save({**self.state_dict(), "results": self.results}, buf)
+        self.store.write_bytes(self.live_key, buf.getvalue())  # whole: the old or the new state, never half
 
     def _load_live(self) -> None:
-        assert self.live_path is not None
+        assert self.store is not None
+        where = self.store.describe(self.live_key)
         try:
-            state = torch.load(self.live_path, weights_only=False, map_location=self.device)
+            data = self.store.read_bytes(self.live_key)
+        except (StorageError, OSError) as e:
+            raise RuntimeError(f"the live state {where} cannot be read ({e}); is runtime.storage reachable?") from e
+        try:
+            state = torch.load(io.BytesIO(data), weights_only=False, map_location=self.device)
         except Exception as e:  # noqa: BLE001 - any unreadable file is the same problem
             raise RuntimeError(
-                f"{self.live_path} is unreadable ({type(e).__name__}: {e}); resume the run from its newest "
+                f"{where} is unreadable ({type(e).__name__}: {e}); resume the run from its newest "
                 "checkpoint (covers-dist train --resume RUN_DIR)"
             ) from e
         self._apply_state(state)

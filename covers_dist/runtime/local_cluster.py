@@ -5,13 +5,53 @@ processes, every process bound to 127.0.0.1, all under one temp dir of the clust
 can be added and removed while a run uses the cluster (``remove_node`` kills that node's raylet,
 object store and worker processes, as a lost machine would). Stop it with :meth:`shutdown`, which
 ends exactly the processes it started.
+
+:meth:`LocalCluster.add_isolated_node` adds a node that does not share the driver's disk: its
+raylet and every process it starts run in their own mount namespace (``unshare --mount``, root
+only) with an empty tmpfs over the given directories (the run directory), as on a cluster
+without a shared filesystem. Losing it kills every process in that namespace.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 from typing import Any
 
-__all__ = ["LocalCluster"]
+__all__ = ["LocalCluster", "IsolatedNode"]
+
+
+class IsolatedNode:
+    """A Ray node in its own mount namespace (:meth:`LocalCluster.add_isolated_node`)."""
+
+    def __init__(self, proc: subprocess.Popen, node_id: str, namespace: str, log_path: Path) -> None:
+        self.proc, self.node_id, self.namespace, self.log_path = proc, node_id, namespace, log_path
+
+    def pids(self) -> list[int]:
+        """Every process in the node's mount namespace (all of them started by the node)."""
+        out = []
+        for entry in Path("/proc").iterdir():
+            if entry.name.isdigit():
+                try:
+                    if os.readlink(entry / "ns" / "mnt") == self.namespace:
+                        out.append(int(entry.name))
+                except OSError:
+                    continue
+        return out
+
+    def kill(self) -> None:
+        """Kill every process of the node at once, as a machine that is lost."""
+        for pid in self.pids():
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        self.proc.wait(30)
 
 
 class LocalCluster:
@@ -41,6 +81,7 @@ class LocalCluster:
             self._restore()
             raise
         self.head = self.cluster.head_node
+        self._isolated: list[IsolatedNode] = []
 
     def _node_args(self, num_cpus: int, resources: dict[str, float] | None) -> dict[str, Any]:
         return {"num_cpus": num_cpus, "node_ip_address": "127.0.0.1", "temp_dir": self.temp_dir, "resources": resources or {}}
@@ -56,7 +97,44 @@ class LocalCluster:
 
     def remove_node(self, node: Any) -> None:
         """Kill a (non-head) node's processes at once, as a machine that is lost."""
+        if isinstance(node, IsolatedNode):
+            node.kill()
+            self._isolated.remove(node)
+            return
         self.cluster.remove_node(node, allow_graceful=False)
+
+    def add_isolated_node(self, num_cpus: int, hide: list[str | Path], timeout_s: float = 60.0) -> IsolatedNode:
+        """A node whose processes see an empty tmpfs over each directory of ``hide`` (they must
+        exist): it shares no files there with the driver or the other nodes. Needs root and
+        ``unshare`` (util-linux); the caller must be connected to the cluster (``ray.init``)."""
+        import ray
+
+        unshare = shutil.which("unshare")
+        if unshare is None or os.geteuid() != 0:
+            raise RuntimeError("an isolated node needs root and unshare (util-linux): a mount namespace of its own")
+        before = {n["NodeID"] for n in ray.nodes()}
+        mounts = "".join(f'mount -t tmpfs covers-isolated "${i + 1}" && ' for i in range(len(hide)))
+        launcher = [sys.executable, "-m", "covers_dist.runtime.local_cluster", self.address, str(num_cpus), self.temp_dir]
+        log_path = Path(self.temp_dir) / f"isolated-node-{len(self._isolated)}.log"
+        # sh's positional parameters: $1.. are the directories to hide, the command follows them
+        script = f'{mounts}shift {len(hide)} && exec "$@"'
+        cmd = [unshare, "--mount", "--propagation", "private", "sh", "-c", script, "sh", *map(str, hide), *launcher]
+        with open(log_path, "ab") as log:
+            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            new = [n for n in ray.nodes() if n["Alive"] and n["NodeID"] not in before]
+            if new:
+                node = IsolatedNode(proc, new[0]["NodeID"], os.readlink(f"/proc/{proc.pid}/ns/mnt"), log_path)
+                self._isolated.append(node)
+                return node
+            if proc.poll() is not None:
+                break
+            time.sleep(0.2)
+        if proc.poll() is None:
+            proc.kill()
+        tail = log_path.read_text(errors="replace")[-2000:] if log_path.exists() else ""
+        raise RuntimeError(f"the isolated node did not join the cluster within {timeout_s:g} s:\n{tail}")
 
     def _restore(self) -> None:
         private_utils, common_utils = self._modules
@@ -69,6 +147,8 @@ class LocalCluster:
         try:
             if ray.is_initialized():
                 ray.shutdown()
+            for node in list(self._isolated):
+                node.kill()
             self.cluster.shutdown()
         finally:
             self._restore()
@@ -78,3 +158,27 @@ class LocalCluster:
 
     def __exit__(self, *exc: Any) -> None:
         self.shutdown()
+
+
+def _serve_node(address: str, num_cpus: int, temp_dir: str) -> None:
+    """Run one worker node of the cluster at ``address`` in this process until it is killed
+    (what :meth:`LocalCluster.add_isolated_node` starts inside its mount namespace)."""
+    import ray._private.node
+    import ray._private.parameter
+
+    from .ray_setup import loopback_only
+
+    loopback_only()
+    params = ray._private.parameter.RayParams(
+        num_cpus=num_cpus, num_gpus=0, node_ip_address="127.0.0.1", temp_dir=temp_dir, gcs_address=address,
+        object_store_memory=150 * 1024 * 1024, min_worker_port=0, max_worker_port=0, node_manager_port=0,
+        include_log_monitor=False,
+    )  # fmt: skip
+    params.dashboard_agent_listen_port = None
+    ray._private.node.Node(params, head=False, shutdown_at_exit=True, spawn_reaper=True)
+    while True:
+        time.sleep(3600)
+
+
+if __name__ == "__main__":
+    _serve_node(sys.argv[1], int(sys.argv[2]), sys.argv[3])

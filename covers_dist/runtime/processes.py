@@ -1,9 +1,10 @@
-"""Which process runs which part of a run: ``RUN_DIR/processes/<role>-<index>.json``.
+"""Which process runs which part of a run: ``processes/<role>-<index>.json`` in the run's storage.
 
 Every Ray actor of a run (rollout and evaluation workers, learners, the clustering actor), the
-driver and the HTTP service write one small file when they start (a restarted actor rewrites
-its own), with their PID and host. Operators use it to see where things run; ``covers-dist
-bench chaos`` uses it to pick what to kill. Plain module: no Ray.
+driver and the HTTP service write one small record when they start (a restarted actor rewrites
+its own), with their PID, host and, on Ray, node. The records go to the run's storage
+(``runtime.storage``, :mod:`.run_storage`), which every node reaches. Operators use them to see
+where things run; ``covers-dist bench chaos`` uses them to pick what to kill. Plain module: no Ray.
 """
 
 from __future__ import annotations
@@ -15,35 +16,32 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["PROCESS_DIR", "announce", "list_processes", "running"]
+from ..storage import StorageError
+from .run_storage import PROCESSES, open_storage
 
-PROCESS_DIR = "processes"
+__all__ = ["announce", "list_processes", "running"]
 
 
-def announce(run_dir: str | Path | None, role: str, index: int | None = None, **extra: Any) -> None:
-    """Record this process as ``role`` (``index``: worker number or policy id) of the run;
-    ``extra``: more fields (e.g. the Ray node id)."""
-    if not run_dir:
+def announce(storage: str | Path | None, role: str, index: int | None = None, **extra: Any) -> None:
+    """Record this process as ``role`` (``index``: worker number or policy id) of the run whose
+    storage is ``storage`` (a path or URI); ``extra``: more fields (e.g. the Ray node id)."""
+    if not storage:
         return
-    root = Path(run_dir) / PROCESS_DIR
-    root.mkdir(parents=True, exist_ok=True)
     name = role if index is None else f"{role}-{index}"
     entry = {"role": role, "index": index, "pid": os.getpid(), "host": socket.gethostname(), "started": time.time(), **extra}
-    tmp = root / f".{name}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(entry))
-    os.replace(tmp, root / f"{name}.json")
+    open_storage(str(storage)).write_bytes(f"{PROCESSES}/{name}.json", json.dumps(entry).encode())
 
 
-def list_processes(run_dir: str | Path) -> list[dict[str, Any]]:
+def list_processes(storage: str | Path) -> list[dict[str, Any]]:
     """The recorded processes of a run (newest record per role and index), sorted by name."""
-    root = Path(run_dir) / PROCESS_DIR
-    if not root.is_dir():
-        return []
+    store = open_storage(str(storage))
     out = []
-    for f in sorted(root.glob("*.json")):
+    for name in store.list(PROCESSES):
+        if not name.endswith(".json"):
+            continue
         try:
-            out.append(json.loads(f.read_text()))
-        except (OSError, json.JSONDecodeError):  # being replaced right now
+            out.append(json.loads(store.read_bytes(f"{PROCESSES}/{name}")))
+        except (StorageError, OSError, json.JSONDecodeError):  # being replaced right now
             continue
     return out
 

@@ -19,14 +19,15 @@ import torch
 import yaml
 
 from ..config import config_to_dict
+from ..storage import pack_dir, unpack_dir
 from .checkpoint import write_checkpoint
-from .learner import LIVE_DIR, live_state_path
 from .ray_setup import resolve_weights
+from .run_storage import drop_live_state, push_checkpoint
 from .saved_run import probe_mismatch
 from .tally import loss_fields
 from .weights import CompletedUpdate
 
-__all__ = ["save_trainer", "restore_trainer", "drop_live_states"]
+__all__ = ["save_trainer", "restore_trainer"]
 
 
 def _driver_state(trainer: Any) -> dict[str, Any]:
@@ -58,7 +59,8 @@ def save_trainer(trainer: Any) -> Path:
             state["pending_update"] = {"policy_id": policy_id, "stats": loss_fields(stats)}
         (tmp / "driver.json").write_text(json.dumps(state))
         (tmp / "config.yaml").write_text(yaml.safe_dump(config_to_dict(trainer.cfg), sort_keys=False))
-        backend.call_clustering("save", str(tmp / "bank"))
+        # the bank comes to the driver as bytes: the clustering actor may run on a node without this disk
+        unpack_dir(backend.call_clustering("snapshot"), tmp / "bank")
         (tmp / "learners").mkdir()
         for pid in sorted(weights.versions):
             torch.save(backend.call_learner(pid, "state_dict"), tmp / "learners" / f"policy-{pid}.pt")
@@ -66,7 +68,9 @@ def save_trainer(trainer: Any) -> Path:
             sampling = resolve_weights(weights.handles[pending[0]])
             torch.save(sampling, tmp / "learners" / f"sampling-{pending[0]}.pt")
 
-    return write_checkpoint(trainer.run_dir, trainer.iteration, write)
+    path = write_checkpoint(trainer.run_dir, trainer.iteration, write)
+    push_checkpoint(trainer.cfg, path)  # a copy on the run's storage, when that is apart from the run directory
+    return path
 
 
 def restore_trainer(trainer: Any, path: Path) -> None:
@@ -84,9 +88,9 @@ def restore_trainer(trainer: Any, path: Path) -> None:
     warning = probe_mismatch(state.get("network_probe"), backend.network_probe(), trainer.cfg)
     if warning:
         trainer.log(f"warning: {path}: {warning}")
-    backend.call_clustering("load", str(path / "bank"))
+    backend.call_clustering("restore", pack_dir(path / "bank"))
     pending = state.get("pending_update")
-    drop_live_states(trainer.run_dir, keep=state["policies"])  # policies created after this checkpoint
+    drop_live_state(trainer.cfg, keep_policies=state["policies"])  # policies created after this checkpoint
     for pid in state["policies"]:
         backend.ensure_learner(pid)
         learner_state = torch.load(path / "learners" / f"policy-{pid}.pt", weights_only=False)
@@ -104,14 +108,3 @@ def restore_trainer(trainer: Any, path: Path) -> None:
     weights.prepare_next_learner()
     trainer.evaluation.rewind(trainer.iteration)
     trainer.log(f"resumed from {path} (iteration {trainer.iteration}, {trainer.env_steps} env steps)")
-
-
-def drop_live_states(run_dir: Path, keep: list[int] | None = None) -> None:
-    """Remove the learners' live states (:mod:`.learner`) of policies not in ``keep`` (all if None)."""
-    live = run_dir / LIVE_DIR
-    if not live.is_dir():
-        return
-    kept = {live_state_path(run_dir, pid).name for pid in keep or []}
-    for f in live.iterdir():
-        if f.name not in kept:
-            f.unlink(missing_ok=True)

@@ -1,0 +1,186 @@
+"""Where a run's durable state lives: a local directory or a ``pyarrow.fs`` URI.
+
+``runtime.storage`` names it the way Ray Train's ``storage_path`` does: a local path
+(``/data/runs/x``, ``file:///data/runs/x``) or a URI of any filesystem pyarrow speaks
+(``s3://bucket/prefix``, ``gs://bucket/prefix``; an S3-compatible server with
+``s3://bucket/prefix?endpoint_override=HOST:PORT&scheme=http``). Every process of a run reaches
+the same storage by its URI, so no process relies on a file that only its own node can see:
+the learners' and the clustering actor's live state, the process records and the copies of the
+checkpoints and logs go through :class:`Storage`.
+
+Each object is written whole: a local file through a temporary file and a rename, an object
+store's object in one upload, so a reader sees the old or the new object, never half of one.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import tarfile
+from pathlib import Path
+from typing import Iterator
+
+__all__ = ["Storage", "StorageError", "is_uri", "storage_child", "pack_dir", "unpack_dir"]
+
+
+class StorageError(RuntimeError):
+    """Storage that cannot be opened, or an object it should hold and does not."""
+
+
+def is_uri(location: str) -> bool:
+    """Whether ``location`` names a filesystem by scheme (``s3://...``) rather than a local path."""
+    return "://" in location
+
+
+class Storage:
+    """Read and write whole objects under one root (a local directory or a ``pyarrow.fs`` URI)."""
+
+    def __init__(self, location: str | Path) -> None:
+        import pyarrow.fs as pafs
+
+        location = str(location)
+        if not location:
+            raise StorageError("storage location is empty: give a local path or a URI such as s3://bucket/prefix")
+        if is_uri(location):
+            try:
+                self.fs, root = pafs.FileSystem.from_uri(location)
+            except Exception as e:  # noqa: BLE001 - pyarrow raises ArrowInvalid, OSError or ValueError here
+                raise StorageError(f"cannot open storage {_without_query(location)}: {e}") from e
+        else:
+            self.fs, root = pafs.LocalFileSystem(), os.path.abspath(location)
+        self.location = location
+        self.root = root.rstrip("/") or "/"
+        self.local = isinstance(self.fs, pafs.LocalFileSystem)
+        self._pafs = pafs
+
+    def __repr__(self) -> str:
+        return f"Storage({_without_query(self.location)!r})"
+
+    def _path(self, key: str) -> str:
+        key = key.strip("/")
+        return f"{self.root}/{key}" if key else self.root
+
+    # ---- objects ---------------------------------------------------------------------------------
+    def write_bytes(self, key: str, data: bytes) -> None:
+        """Write the object ``key`` whole (replacing it)."""
+        path = self._path(key)
+        parent, name = path.rsplit("/", 1)
+        if self.local:
+            os.makedirs(parent, exist_ok=True)
+            tmp = f"{parent}/.{name}.{os.getpid()}.tmp"
+            with open(tmp, "wb") as fh:
+                fh.write(data)
+            os.replace(tmp, path)  # a crash leaves the old or the new file, never half of one
+            return
+        with self.fs.open_output_stream(path) as out:  # an object store's object appears whole on close
+            out.write(data)
+
+    def read_bytes(self, key: str) -> bytes:
+        """The object ``key``; :class:`StorageError` if it is missing."""
+        try:
+            with self.fs.open_input_stream(self._path(key)) as fh:
+                return fh.readall()
+        except FileNotFoundError as e:
+            raise StorageError(f"{self.describe(key)} is missing") from e
+
+    def exists(self, key: str) -> bool:
+        return self.fs.get_file_info(self._path(key)).type == self._pafs.FileType.File
+
+    def delete(self, key: str) -> None:
+        """Remove the object ``key`` (nothing if it is missing)."""
+        if self.exists(key):
+            self.fs.delete_file(self._path(key))
+
+    def delete_dir(self, key: str) -> None:
+        """Remove everything under ``key`` (nothing if there is nothing)."""
+        info = self.fs.get_file_info(self._path(key))
+        if info.type == self._pafs.FileType.Directory:
+            self.fs.delete_dir(self._path(key))
+
+    def list(self, key: str, recursive: bool = False) -> list[str]:
+        """Names of the objects under ``key`` (relative to it, sorted); hidden temporaries left out."""
+        base = self._path(key)
+        selector = self._pafs.FileSelector(base, allow_not_found=True, recursive=recursive)
+        out = []
+        for info in self.fs.get_file_info(selector):
+            if info.type != self._pafs.FileType.File:
+                continue
+            rel = info.path[len(base) :].lstrip("/")
+            if not any(part.startswith(".") for part in rel.split("/")):
+                out.append(rel)
+        return sorted(out)
+
+    def list_dirs(self, key: str) -> list[str]:
+        """Names of the directories (prefixes) right under ``key``, sorted."""
+        base = self._path(key)
+        selector = self._pafs.FileSelector(base, allow_not_found=True, recursive=False)
+        return sorted(
+            info.path[len(base) :].strip("/")
+            for info in self.fs.get_file_info(selector)
+            if info.type == self._pafs.FileType.Directory
+        )
+
+    # ---- directories -----------------------------------------------------------------------------
+    def put_dir(self, local_dir: str | Path, key: str, last: str | None = None) -> None:
+        """Copy every file of ``local_dir`` to ``key/``; ``last``: a file written after all others
+        (a manifest: a reader that sees it sees the rest)."""
+        files = sorted(p for p in Path(local_dir).rglob("*") if p.is_file())
+        for p in sorted(files, key=lambda p: p.name == last):
+            self.write_bytes(f"{key}/{p.relative_to(local_dir).as_posix()}", p.read_bytes())
+
+    def get_dir(self, key: str, local_dir: str | Path) -> list[str]:
+        """Copy every object under ``key/`` into ``local_dir``; the names copied."""
+        names = self.list(key, recursive=True)
+        for rel in names:
+            target = Path(local_dir) / rel
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(self.read_bytes(f"{key}/{rel}"))
+        return names
+
+    def describe(self, key: str = "") -> str:
+        """Where ``key`` is, for messages (a URI's query, which may hold an endpoint, left out)."""
+        base = _without_query(self.location).rstrip("/")
+        return f"{base}/{key.strip('/')}" if key else base
+
+
+def storage_child(location: str, name: str) -> str:
+    """The location ``name`` under ``location`` (a path or URI; a URI's query is kept)."""
+    base, sep, query = location.partition("?")
+    return f"{base.rstrip('/')}/{name}{sep}{query}"
+
+
+def _without_query(location: str) -> str:
+    return location.split("?", 1)[0]
+
+
+def pack_dir(directory: str | Path) -> bytes:
+    """The files of ``directory`` as one uncompressed tar (one object to store or send whole)."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for p in sorted(Path(directory).rglob("*")):
+            if p.is_file():
+                tar.add(p, arcname=p.relative_to(directory).as_posix(), recursive=False)
+    return buf.getvalue()
+
+
+def unpack_dir(data: bytes, directory: str | Path) -> list[str]:
+    """Unpack :func:`pack_dir`'s bytes into ``directory``; the names unpacked. Only plain files
+    with relative names inside ``directory`` are accepted."""
+    out = []
+    with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
+        for member in _members(tar):
+            target = Path(directory) / member.name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            src = tar.extractfile(member)
+            assert src is not None
+            target.write_bytes(src.read())
+            out.append(member.name)
+    return out
+
+
+def _members(tar: tarfile.TarFile) -> Iterator[tarfile.TarInfo]:
+    for member in tar.getmembers():
+        parts = Path(member.name).parts
+        if not member.isfile() or Path(member.name).is_absolute() or ".." in parts:
+            raise StorageError(f"refusing archive member {member.name!r}: only relative plain files are stored")
+        yield member

@@ -1,0 +1,110 @@
+"""A run's storage (runtime.storage): local paths and URIs through pyarrow.fs, one S3 server on
+127.0.0.1 (moto's server mode), objects written whole, and a checkpoint's manifest that covers
+what a restore needs."""
+
+import json
+import shutil
+
+import pytest
+from s3_server import s3_server
+
+from covers_dist.config import ConfigError, load_config
+from covers_dist.runtime.checkpoint import CheckpointError, list_checkpoints, verify_checkpoint
+from covers_dist.runtime.run_storage import mirrors_run_dir
+from covers_dist.storage import Storage, StorageError, pack_dir, storage_child, unpack_dir
+
+
+def _round_trip(store: Storage) -> None:
+    assert not store.exists("a/b.bin") and store.list("a") == [] and store.list_dirs("") == []
+    store.write_bytes("a/b.bin", b"one")
+    store.write_bytes("a/b.bin", b"two")  # replaced whole
+    store.write_bytes("a/c/d.json", b"{}")
+    assert store.read_bytes("a/b.bin") == b"two" and store.exists("a/b.bin")
+    assert store.list("a") == ["b.bin"] and store.list("a", recursive=True) == ["b.bin", "c/d.json"]
+    assert store.list_dirs("") == ["a"] and store.list_dirs("a") == ["c"]
+    with pytest.raises(StorageError, match="a/missing.bin is missing"):
+        store.read_bytes("a/missing.bin")
+    store.delete("a/b.bin")
+    store.delete("a/b.bin")  # a missing object: nothing to do
+    assert store.list("a", recursive=True) == ["c/d.json"]
+    store.delete_dir("a")
+    store.delete_dir("a")
+    assert store.list("", recursive=True) == []
+
+
+def test_local_storage_round_trip_leaves_no_temporary_file(tmp_path):
+    store = Storage(tmp_path / "store")
+    _round_trip(store)
+    store.write_bytes("x/y.bin", b"z")
+    assert sorted(p.name for p in (tmp_path / "store" / "x").iterdir()) == ["y.bin"]  # written through a rename
+    assert Storage(f"file://{tmp_path}/store").read_bytes("x/y.bin") == b"z"  # the same place by URI
+
+
+def test_s3_storage_round_trip_and_a_missing_bucket_named():
+    with s3_server() as s3:
+        s3.make_bucket("covers-runs")
+        _round_trip(Storage(s3.uri("covers-runs/run-1")))
+        with pytest.raises(StorageError, match="s3://no-such-bucket/x/key is missing"):
+            Storage(s3.uri("no-such-bucket/x")).read_bytes("key")
+
+
+def test_put_dir_writes_the_manifest_last_and_get_dir_copies_back(tmp_path):
+    src = tmp_path / "ckpt"
+    (src / "learners").mkdir(parents=True)
+    for name in ("manifest.json", "driver.json", "learners/policy-0.pt"):
+        (src / name).write_text(name)
+    written = []
+    store = Storage(tmp_path / "store")
+    original = store.write_bytes
+    store.write_bytes = lambda key, data: (written.append(key), original(key, data))  # type: ignore[method-assign]
+    store.put_dir(src, "checkpoints/ckpt-1", last="manifest.json")
+    assert written[-1] == "checkpoints/ckpt-1/manifest.json" and len(written) == 3
+    assert store.get_dir("checkpoints/ckpt-1", tmp_path / "back") == ["driver.json", "learners/policy-0.pt", "manifest.json"]
+    assert (tmp_path / "back" / "learners" / "policy-0.pt").read_text() == "learners/policy-0.pt"
+
+
+def test_pack_unpack_round_trip_and_refuses_names_outside(tmp_path):
+    (tmp_path / "a" / "sub").mkdir(parents=True)
+    (tmp_path / "a" / "x.json").write_text("1")
+    (tmp_path / "a" / "sub" / "y.npz").write_bytes(b"\0\1")
+    assert unpack_dir(pack_dir(tmp_path / "a"), tmp_path / "b") == ["sub/y.npz", "x.json"]
+    assert (tmp_path / "b" / "sub" / "y.npz").read_bytes() == b"\0\1"
+    import io
+    import tarfile
+
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        info = tarfile.TarInfo("../escape")
+        info.size = 1
+        tar.addfile(info, io.BytesIO(b"x"))
+    with pytest.raises(StorageError, match="refusing archive member '../escape'"):
+        unpack_dir(buf.getvalue(), tmp_path / "c")
+    assert not (tmp_path / "escape").exists()
+
+
+def test_storage_config_is_checked_and_named_in_errors(tmp_path):
+    with pytest.raises(ConfigError, match="unknown scheme 'ftp'"):
+        load_config("configs/smoke.yaml", ["runtime.storage=ftp://host/x"])
+    with pytest.raises(ConfigError, match="runtime.storage is empty"):
+        load_config("configs/smoke.yaml", ["runtime.storage= "])
+    with pytest.raises(StorageError, match="cannot open storage s3://b/x: .*'bogus'"):
+        Storage("s3://b/x?bogus=1")
+    assert storage_child("s3://b/run?scheme=http", "clean") == "s3://b/run/clean?scheme=http"
+    same = load_config("configs/smoke.yaml", [f"runtime.run_dir={tmp_path}", f"runtime.storage=file://{tmp_path}"])
+    apart = load_config("configs/smoke.yaml", [f"runtime.run_dir={tmp_path}", f"runtime.storage={tmp_path}/copy"])
+    assert not mirrors_run_dir(same) and mirrors_run_dir(apart)
+    assert not mirrors_run_dir(load_config("configs/smoke.yaml", [f"runtime.run_dir={tmp_path}"]))
+
+
+def test_a_checkpoint_without_its_bank_does_not_verify(tiny_serial_run, tmp_path):
+    """The manifest must list what a restore reads, the bank included: a checkpoint whose bank is
+    missing (and whose manifest does not name it) is refused by name, not restored half."""
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(list_checkpoints(tiny_serial_run[2])[-1], ckpt)
+    verify_checkpoint(ckpt)
+    shutil.rmtree(ckpt / "bank")
+    manifest = json.loads((ckpt / "manifest.json").read_text())
+    manifest["files"] = {k: v for k, v in manifest["files"].items() if not k.startswith("bank/")}
+    (ckpt / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(CheckpointError, match="the manifest lacks bank/bank.json, which a restore needs"):
+        verify_checkpoint(ckpt)
