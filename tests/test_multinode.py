@@ -44,6 +44,25 @@ def test_losing_a_node_that_shares_no_disk_changes_nothing(lose):
 
 
 @pytest.mark.multinode
+@ROOT_ONLY
+def test_a_storage_the_isolated_node_cannot_see_stops_the_run_with_the_reason(tmp_path):
+    """The same cluster with the storage a path under the hidden directory (file://): the workers
+    placed on the isolated node cannot read the driver's token there and stop at once, naming
+    the storage and the fix, instead of keeping their state where no restart would find it."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    done = subprocess.run(
+        [sys.executable, "-m", "covers_dist", "bench", "chaos", "--node-loss", "workers", "--isolated-disk",
+         "--out", str(out), "--set", f"runtime.storage=file://{out}/store", *_sets("runtime.total_env_steps=4000")],
+        capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert done.returncode != 0
+    assert "does not see this run's storage" in done.stderr and "run.json is missing" in done.stderr, done.stderr[-3000:]
+
+
+@pytest.mark.multinode
 def test_checkpoint_and_resume_through_an_s3_uri_equal_the_uninterrupted_run(tiny_serial_run, tmp_path):
     with s3_server() as s3:
         s3.make_bucket("covers-runs")

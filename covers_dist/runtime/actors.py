@@ -23,7 +23,7 @@ from ..config import Config
 from .clustering_service import ClusteringService
 from .learner import PolicyLearner
 from .processes import announce
-from .run_storage import storage_location
+from .run_storage import check_reachable, storage_location
 from .rollout import EVAL_WORKER_INDEX, RolloutWorker, split_first_frames
 
 __all__ = ["rollout_actor", "eval_actor", "clustering_actor", "learner_actor", "clustering_actor_name", "run_namespace"]
@@ -47,7 +47,8 @@ def _lower_priority(cfg: Config) -> None:
 
 
 class _RolloutHost(RolloutWorker):
-    def __init__(self, cfg: Config, worker_index: int = 0, storage: str | None = None) -> None:
+    def __init__(self, cfg: Config, worker_index: int = 0, storage: str | None = None, run_token: str | None = None) -> None:
+        check_reachable(storage or "", run_token, f"rollout worker {worker_index}")
         _lower_priority(cfg)
         super().__init__(cfg, worker_index)
         _announce(storage, "eval" if worker_index >= EVAL_WORKER_INDEX else "worker", worker_index)
@@ -64,14 +65,18 @@ class _RolloutHost(RolloutWorker):
 
 
 class _LearnerHost(PolicyLearner):
-    def __init__(self, cfg: Config, policy_id: int, device: str | None = None, storage: str | None = None) -> None:
+    def __init__(
+        self, cfg: Config, policy_id: int, device: str | None = None, storage: str | None = None, run_token: str | None = None
+    ) -> None:
+        check_reachable(storage or "", run_token, f"the learner of policy {policy_id}")
         _lower_priority(cfg)
         super().__init__(cfg, policy_id, device, storage)
         _announce(storage, "learner", policy_id)
 
 
 class _ClusteringHost(ClusteringService):
-    def __init__(self, cfg: Config, storage: str) -> None:
+    def __init__(self, cfg: Config, storage: str, run_token: str | None = None) -> None:
+        check_reachable(storage, run_token, "the clustering actor")
         super().__init__(cfg, storage)
         _announce(storage, "clustering")
 
@@ -100,12 +105,12 @@ def run_namespace(cfg: Config) -> str:
     return f"{ACTOR_NAMESPACE}-{hashlib.sha256(where.encode()).hexdigest()[:12]}"
 
 
-def clustering_actor(cfg: Config, storage: str) -> Any:
+def clustering_actor(cfg: Config, storage: str, run_token: str | None = None) -> Any:
     """Create (or get) the named clustering actor of this run."""
     cls = ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)(_ClusteringHost)
     return cls.options(
         name=clustering_actor_name(cfg), namespace=run_namespace(cfg), get_if_exists=True, lifetime=None
-    ).remote(cfg, storage)
+    ).remote(cfg, storage, run_token)
 
 
 def learner_actor(cfg: Config) -> Any:

@@ -16,6 +16,7 @@ from ..config import Config
 from ..models.checks import check_same_function
 from .placement import check_fits
 from .rollout import EVAL_WORKER_INDEX, EpisodeSpec, merge_first_frames, split_first_frames, training_seeds
+from .run_storage import mark_run
 
 __all__ = ["SerialBackend", "RayBackend", "RayEvalExecutors"]
 
@@ -128,9 +129,12 @@ class RayBackend:
         if cfg.runtime.check_fit:  # before any actor is queued: one that never fits would wait forever
             check_fits(cfg, [n["Resources"] for n in ray.nodes() if n.get("Alive")])
         self.storage = _storage(cfg, run_dir)  # what every actor, on any node, writes its state to
+        self.run_token = mark_run(cfg)  # an actor that cannot read it does not see the storage: it stops
         self._learner_cls = learner_actor(cfg)
-        self.workers = [rollout_actor(cfg).remote(cfg, i, self.storage) for i in range(cfg.runtime.num_workers)]
-        self.clustering = clustering_actor(cfg, self.storage)
+        self.workers = [
+            rollout_actor(cfg).remote(cfg, i, self.storage, self.run_token) for i in range(cfg.runtime.num_workers)
+        ]
+        self.clustering = clustering_actor(cfg, self.storage, self.run_token)
         self.learners: dict[int, Any] = {}
         self._spare: dict[int, Any] = {}  # learners started ahead of their policy (prepare_learner)
         self._eval: RayEvalExecutors | None = None
@@ -218,14 +222,14 @@ class RayBackend:
 
     def _new_learner(self, policy_id: int) -> Any:
         """A learner actor that persists its state after every update (a restart reloads it)."""
-        return self._learner_cls.remote(self.cfg, policy_id, None, self.storage)
+        return self._learner_cls.remote(self.cfg, policy_id, None, self.storage, self.run_token)
 
     def call_learner(self, policy_id: int, method: str, *args: Any) -> Any:
         return self.ray.get(getattr(self.learners[policy_id], method).remote(*args))
 
     def eval_executors(self) -> "RayEvalExecutors":
         if self._eval is None:
-            self._eval = RayEvalExecutors(self.cfg, self.storage)
+            self._eval = RayEvalExecutors(self.cfg, self.storage, self.run_token)
             self._check_probes({f"evaluation worker {i}": a for i, a in enumerate(self._eval.actors)})
         return self._eval
 
@@ -241,14 +245,14 @@ class RayBackend:
 class RayEvalExecutors:
     """``eval.workers`` evaluation actors (rollout workers reserving ``eval.num_cpus`` each)."""
 
-    def __init__(self, cfg: Config, storage: str | None = None) -> None:
+    def __init__(self, cfg: Config, storage: str | None = None, run_token: str | None = None) -> None:
         import ray
 
         from .actors import eval_actor
 
         self.ray = ray
         cls = eval_actor(cfg)
-        self.actors = [cls.remote(cfg, EVAL_WORKER_INDEX + i, storage) for i in range(cfg.eval.workers)]
+        self.actors = [cls.remote(cfg, EVAL_WORKER_INDEX + i, storage, run_token) for i in range(cfg.eval.workers)]
 
     @property
     def size(self) -> int:

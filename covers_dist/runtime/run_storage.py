@@ -8,6 +8,8 @@ Layout under the storage root::
     processes/<role>.json       which process runs which part of the run (pid, node)
     checkpoints/ckpt-N/         copies of the driver's checkpoints (manifest.json written last)
     config.yaml, *.jsonl, ...   copies of the run's logs, refreshed with every checkpoint
+    run.json                    the running driver's token: an actor that cannot read it does not
+                                see this storage (a path only the driver's node has) and stops
 
 Without ``runtime.storage`` the storage is ``runtime.run_dir`` itself: the live state sits beside
 the checkpoints, and nothing is copied. With a URI, the run directory is the driver's local
@@ -18,9 +20,13 @@ valid checkpoint and the logs from the storage before it resumes (:func:`fetch_r
 from __future__ import annotations
 
 import functools
+import json
 import os
+import secrets
 import shutil
+import socket
 import tempfile
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -40,12 +46,15 @@ __all__ = [
     "fetch_run",
     "storage_holds_a_run",
     "clear_storage",
+    "mark_run",
+    "check_reachable",
 ]
 
 LEARNERS_LIVE = "learners_live"
 CLUSTERING_LIVE = "clustering_live"
 PROCESSES = "processes"
 CHECKPOINTS = "checkpoints"
+RUN_MARKER = "run.json"
 
 
 def storage_location(cfg: Config) -> str:
@@ -156,3 +165,32 @@ def clear_storage(cfg: Config) -> None:
         store.delete_dir(key)
     for name in store.list(""):
         store.delete(name)
+
+
+def mark_run(cfg: Config) -> str:
+    """Write a fresh token of this driver into the storage (``run.json``); the actors it starts
+    check it (:func:`check_reachable`)."""
+    token = secrets.token_hex(8)
+    entry = {"token": token, "host": socket.gethostname(), "pid": os.getpid(), "started": time.time()}
+    open_storage(storage_location(cfg)).write_bytes(RUN_MARKER, json.dumps(entry).encode())
+    return token
+
+
+def check_reachable(storage: str, token: str | None, what: str) -> None:
+    """Stop ``what`` (an actor starting) unless it reads the driver's ``token`` in the storage: an
+    actor whose node does not see the storage (a local path on a cluster whose nodes share no
+    disk) would otherwise keep its state where no restart on another node finds it."""
+    if not token:
+        return
+    store = open_storage(storage)
+    try:
+        found = json.loads(store.read_bytes(RUN_MARKER)).get("token")
+    except (StorageError, OSError, ValueError, AttributeError):
+        found = None
+    if found != token:
+        problem = "is missing" if found is None else "belongs to another run"
+        raise StorageError(
+            f"{what} on host {socket.gethostname()} does not see this run's storage {store.describe()} "
+            f"({RUN_MARKER} {problem} there): on a cluster whose nodes share no disk, set runtime.storage to a "
+            "URI every node reaches (s3://bucket/prefix, gs://bucket/prefix) or a path every node mounts"
+        )
