@@ -113,12 +113,11 @@ def test_a_checkpoint_without_its_bank_does_not_verify(tiny_serial_run, tmp_path
 def test_an_actor_that_cannot_read_the_drivers_token_stops_with_the_reason(tmp_path):
     from covers_dist.runtime.run_storage import check_reachable, mark_run
 
-    cfg = load_config("configs/smoke.yaml", [f"runtime.run_dir={tmp_path / 'run'}"])
-    token = mark_run(cfg)
+    token = mark_run(str(tmp_path / "run"))
     check_reachable(str(tmp_path / "run"), token, "the learner of policy 0")  # sees it: nothing happens
     check_reachable(str(tmp_path / "elsewhere"), None, "a serial run")  # no token: nothing to check
     with pytest.raises(StorageError, match=r"the learner of policy 0 on host .* does not see .*run.json is missing"):
         check_reachable(str(tmp_path / "elsewhere"), token, "the learner of policy 0")  # a disk only the driver has
-    mark_run(cfg)  # a newer driver of the same storage
+    mark_run(str(tmp_path / "run"))  # a newer driver of the same storage
     with pytest.raises(StorageError, match="belongs to another run"):
         check_reachable(str(tmp_path / "run"), token, "rollout worker 0")

@@ -129,7 +129,7 @@ class RayBackend:
         if cfg.runtime.check_fit:  # before any actor is queued: one that never fits would wait forever
             check_fits(cfg, [n["Resources"] for n in ray.nodes() if n.get("Alive")])
         self.storage = _storage(cfg, run_dir)  # what every actor, on any node, writes its state to
-        self.run_token = mark_run(cfg)  # an actor that cannot read it does not see the storage: it stops
+        self.run_token = mark_run(self.storage)  # an actor that cannot read it does not see the storage: it stops
         self._learner_cls = learner_actor(cfg)
         self.workers = [
             rollout_actor(cfg).remote(cfg, i, self.storage, self.run_token) for i in range(cfg.runtime.num_workers)

@@ -167,12 +167,12 @@ def clear_storage(cfg: Config) -> None:
         store.delete(name)
 
 
-def mark_run(cfg: Config) -> str:
-    """Write a fresh token of this driver into the storage (``run.json``); the actors it starts
+def mark_run(storage: str) -> str:
+    """Write a fresh token of this driver into ``storage`` (``run.json``); the actors it starts
     check it (:func:`check_reachable`)."""
     token = secrets.token_hex(8)
     entry = {"token": token, "host": socket.gethostname(), "pid": os.getpid(), "started": time.time()}
-    open_storage(storage_location(cfg)).write_bytes(RUN_MARKER, json.dumps(entry).encode())
+    open_storage(storage).write_bytes(RUN_MARKER, json.dumps(entry).encode())
     return token
 
 
