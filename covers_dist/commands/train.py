@@ -18,7 +18,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     add_config_args(p, default="smoke")
-    p.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its newest valid checkpoint")
+    p.add_argument(
+        "--resume",
+        metavar="RUN_DIR",
+        help="continue the run in RUN_DIR from its newest valid checkpoint; or give the run's storage URI "
+        "(runtime.storage, e.g. s3://bucket/run) to fetch it from there into the run directory it names",
+    )
     p.add_argument("--address", help="Ray cluster address (default: start a local instance on 127.0.0.1)")
     p.add_argument("--serial", action="store_true", help="run every component in this process (no Ray)")
     p.add_argument("--run-dir", help="override runtime.run_dir")

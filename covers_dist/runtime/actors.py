@@ -14,7 +14,6 @@ Every actor records its PID in ``processes/`` of the run's storage when it start
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import ray

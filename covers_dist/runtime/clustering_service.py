@@ -268,7 +268,6 @@ class ClusteringService:
             for pid, w in (weights or {}).items():
                 self.sync_weights({int(pid): (-1, w)})
 
-
     def snapshot(self) -> bytes:
         """:meth:`save`'s files as one archive (what the driver writes into a checkpoint's ``bank/``)."""
         with self._lock, tempfile.TemporaryDirectory(prefix="covers-bank-") as tmp:

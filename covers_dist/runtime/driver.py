@@ -43,6 +43,7 @@ from .metrics import MetricsWriter, Progress
 from .processes import announce
 from .ray_setup import check_run_dir_outlives_the_job
 from .rollout import EpisodeSpec
+from .run_storage import CHECKPOINTS, CLUSTERING_LIVE, LEARNERS_LIVE, PROCESSES
 from .run_storage import clear_storage, drop_live_state, fetch_run, storage_holds_a_run, storage_location
 from .tally import EpisodeTally, iteration_row
 from .trainer_checkpoint import restore_trainer, save_trainer
@@ -327,13 +328,14 @@ def train(
     run_dir = Path(cfg.runtime.run_dir)
     if resume_dir is None and holds_a_run(cfg):
         if not overwrite:
-            where = f"{run_dir} (storage {cfg.runtime.storage})" if cfg.runtime.storage else str(run_dir)
+            storage = cfg.runtime.storage.split("?", 1)[0] if cfg.runtime.storage else None
+            where = f"{run_dir} (storage {storage})" if storage else str(run_dir)
             raise FileExistsError(
                 f"{where} already holds a run: continue it with --resume {run_dir}, "
                 "choose another --run-dir, or pass --overwrite to start over"
             )
         clear_storage(cfg)
-        for name in ("checkpoints", "learners_live", "clustering_live", "processes", "tb"):
+        for name in (CHECKPOINTS, LEARNERS_LIVE, CLUSTERING_LIVE, PROCESSES, "tb"):
             shutil.rmtree(run_dir / name, ignore_errors=True)
         for name in ("metrics.jsonl", "episodes.jsonl", "eval.jsonl"):
             remove_log(run_dir, name)  # with its rotated segments
