@@ -121,3 +121,34 @@ def test_an_actor_that_cannot_read_the_drivers_token_stops_with_the_reason(tmp_p
     mark_run(str(tmp_path / "run"))  # a newer driver of the same storage
     with pytest.raises(StorageError, match="belongs to another run"):
         check_reachable(str(tmp_path / "run"), token, "rollout worker 0")
+
+
+def test_checkpoint_copies_carry_the_logs_but_never_a_drivers_token(tmp_path):
+    """The storage apart from the run directory gets the checkpoint (manifest last) and the logs;
+    the token of the running driver there is never overwritten by a copy, and a driver on a fresh
+    node fetches the newest valid checkpoint and the logs but not an earlier driver's token."""
+    from covers_dist.runtime.run_storage import RUN_MARKER, fetch_run, mark_run, push_checkpoint
+
+    run_dir, store_dir = tmp_path / "run", tmp_path / "store"
+    cfg = load_config("configs/smoke.yaml", [f"runtime.run_dir={run_dir}", f"runtime.storage={store_dir}"])
+    ckpt = run_dir / "checkpoints" / "ckpt-000001"
+    (ckpt / "bank").mkdir(parents=True)
+    (run_dir / "metrics.jsonl").write_text('{"iteration": 1}\n')
+    (run_dir / RUN_MARKER).write_text('{"token": "stale"}')  # e.g. fetched from an earlier driver
+    token = mark_run(str(store_dir))
+    for name in ("driver.json", "config.yaml", "bank/bank.json"):
+        (ckpt / name).write_text("{}" if name == "driver.json" else "x")
+    from covers_dist.clustering.persistence import file_sha256
+
+    files = {n: file_sha256(ckpt / n) for n in ("driver.json", "config.yaml", "bank/bank.json")}
+    (ckpt / "manifest.json").write_text(json.dumps({"format_version": 1, "iteration": 1, "files": files}))
+    push_checkpoint(cfg, ckpt)
+    store = Storage(store_dir)
+    assert json.loads(store.read_bytes(RUN_MARKER))["token"] == token
+    assert store.read_bytes("metrics.jsonl") == b'{"iteration": 1}\n'
+    assert store.list("checkpoints/ckpt-000001", recursive=True) == ["bank/bank.json", "config.yaml", "driver.json", "manifest.json"]
+
+    shutil.rmtree(run_dir)  # a fresh node
+    got = fetch_run(cfg, log=lambda *_: None)
+    assert got == run_dir / "checkpoints" / "ckpt-000001" and verify_checkpoint(got)["iteration"] == 1
+    assert (run_dir / "metrics.jsonl").is_file() and not (run_dir / RUN_MARKER).exists()

@@ -108,7 +108,7 @@ def push_checkpoint(cfg: Config, path: Path) -> None:
         store.delete_dir(f"{CHECKPOINTS}/{name}")
     run_dir = Path(cfg.runtime.run_dir)
     for f in sorted(run_dir.iterdir()):
-        if f.is_file() and not f.name.startswith("."):
+        if f.is_file() and not f.name.startswith(".") and f.name != RUN_MARKER:  # the token is the driver's own
             store.write_bytes(f.name, f.read_bytes())
 
 
@@ -130,7 +130,8 @@ def fetch_run(cfg: Config, log: Callable[[str], None] = print) -> Path | None:
         return None
     run_dir.mkdir(parents=True, exist_ok=True)
     for name in store.list(""):
-        (run_dir / name).write_bytes(store.read_bytes(name))
+        if name != RUN_MARKER:  # an earlier driver's token: never to be copied back over the running one's
+            (run_dir / name).write_bytes(store.read_bytes(name))
     local = run_dir / CHECKPOINTS
     for name in reversed(names):
         tmp = Path(tempfile.mkdtemp(prefix=f".fetch-{name}-", dir=run_dir))
