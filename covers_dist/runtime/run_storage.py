@@ -143,6 +143,7 @@ def fetch_run(cfg: Config, log: Callable[[str], None] = print) -> Path | None:
             shutil.rmtree(tmp, ignore_errors=True)
             continue
         local.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(local / name, ignore_errors=True)  # a local copy that did not verify
         os.replace(tmp, local / name)
         log(f"fetched checkpoint {name} and the run's logs from {store.describe()} into {run_dir}")
         return local / name
