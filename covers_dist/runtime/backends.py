@@ -16,7 +16,7 @@ from ..config import Config
 from ..models.checks import check_same_function
 from .placement import check_fits
 from .rollout import EVAL_WORKER_INDEX, EpisodeSpec, merge_first_frames, split_first_frames, training_seeds
-from .run_storage import mark_run
+from .run_storage import mark_run, storage_location
 
 __all__ = ["SerialBackend", "RayBackend", "RayEvalExecutors"]
 
@@ -32,7 +32,7 @@ class SerialBackend:
 
         self.cfg = cfg
         self.workers = [RolloutWorker(cfg, i) for i in range(cfg.runtime.num_workers)]
-        self.clustering = ClusteringService(cfg, _storage(cfg, run_dir))
+        self.clustering = ClusteringService(cfg, storage_location(cfg, run_dir))
         self.learners: dict[int, Any] = {}
         self._eval: Any = None
 
@@ -128,7 +128,7 @@ class RayBackend:
         self.cfg = cfg
         if cfg.runtime.check_fit:  # before any actor is queued: one that never fits would wait forever
             check_fits(cfg, [n["Resources"] for n in ray.nodes() if n.get("Alive")])
-        self.storage = _storage(cfg, run_dir)  # what every actor, on any node, writes its state to
+        self.storage = storage_location(cfg, run_dir)  # what every actor, on any node, writes its state to
         self.run_token = mark_run(self.storage)  # an actor that cannot read it does not see the storage: it stops
         self._learner_cls = learner_actor(cfg)
         self.workers = [
@@ -267,9 +267,3 @@ class RayEvalExecutors:
                 self.ray.kill(a, no_restart=True)
             except Exception:  # noqa: BLE001 - already gone
                 pass
-
-
-def _storage(cfg: Config, run_dir: Path) -> str:
-    """The run's storage (``runtime.storage``, else ``run_dir``, absolute: actors may run in
-    another working directory)."""
-    return cfg.runtime.storage or str(Path(run_dir).resolve())

@@ -57,9 +57,10 @@ CHECKPOINTS = "checkpoints"
 RUN_MARKER = "run.json"
 
 
-def storage_location(cfg: Config) -> str:
-    """``runtime.storage``, or the absolute ``runtime.run_dir`` (actors may run in another directory)."""
-    return cfg.runtime.storage or os.path.abspath(cfg.runtime.run_dir)
+def storage_location(cfg: Config, run_dir: str | Path | None = None) -> str:
+    """``runtime.storage``, or the absolute run directory (``run_dir``, default ``runtime.run_dir``;
+    absolute because actors may run in another directory)."""
+    return cfg.runtime.storage or os.path.abspath(run_dir if run_dir is not None else cfg.runtime.run_dir)
 
 
 @functools.lru_cache(maxsize=8)
