@@ -31,7 +31,7 @@ from covers_dist.runtime.driver import Trainer
 # iterations the live run trains in the background (after its first): enough for the tests to see
 # it progress and recall (from the 3rd on every iteration recalls); more would only take the CPU
 # from the tests running beside it
-MAX_STEPS = 12
+MAX_STEPS = 6
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +65,10 @@ def live(ray_local, tmp_path_factory):
             if stop.is_set():
                 return
             one_step()
+            # a pause with the lock free: a test waiting for it gets it here (threading.Lock is not
+            # fair: without the pause this thread takes it back at once, and the test waits for the
+            # whole loop)
+            stop.wait(0.2)
 
     thread = threading.Thread(target=loop, daemon=True)
     thread.start()
