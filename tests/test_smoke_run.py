@@ -1,7 +1,7 @@
 """The smoke config end to end on Ray (2 CPUs): one policy per toy group, and learning.
 
 The default suite runs one round of the three groups and the first iteration of the next round,
-with a narrow network on 16 px images, one rollout worker: every group gets its own policy, and the group that comes
+with one rollout worker and one PPO epoch: every group gets its own policy, and the group that comes
 back is recalled (not given a new policy). The full config's run, where the reach group's success rises, is marked slow; that this
 PPO learns a toy task is the default suite's tests/test_learning.py."""
 
@@ -34,10 +34,12 @@ def test_one_round_gives_each_group_a_policy_and_recalls_a_returning_group(ray_l
     base = load_config("configs/smoke.yaml")
     per_iteration = base.clustering.update_every * base.env.max_episode_steps
     one_round = len(base.env.tasks) * base.env.episodes_per_task * base.env.max_episode_steps
-    # the clustering decisions are what is checked, not learning: a narrow network on 16 px images,
-    # one rollout worker (the config's own sizes: the slow test below)
-    cfg, records, episodes = _run(tmp_path, f"runtime.total_env_steps={one_round + per_iteration}",
-                                  "network.channels=[2,4]", "network.hidden=8", "env.image_size=16", "ppo.epochs=1",
+    # the clustering decisions are what is checked, not learning: one epoch, one rollout worker. The
+    # config's own network and image size: with a narrower one (channels [2,4], 8 hidden units, 16 px)
+    # the avoid and push groups' initial frames lie at W1 0.9-1.0 of each other's buffers, at the
+    # threshold (1.0), and whether they split depended on the seed and the CPU's arithmetic; at these
+    # sizes, 5 seeds gave other groups >= 1.3 and the same group <= 0.73
+    cfg, records, episodes = _run(tmp_path, f"runtime.total_env_steps={one_round + per_iteration}", "ppo.epochs=1",
                                   "runtime.learner_ahead=false", "runtime.num_workers=1")  # fmt: skip
     assert sorted({e["task"] for e in episodes[: one_round // cfg.env.max_episode_steps]}) == sorted(cfg.env.tasks)
     decisions = [r["decision"] for r in records]
