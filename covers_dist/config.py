@@ -161,7 +161,12 @@ class PPOConfig:
     )
     target_kl: float | None = _f(None, "Stop the epochs early once approx-KL exceeds this (null: never).")
     norm_adv: bool = _f(True, "Normalize advantages per minibatch.")
-    total_updates: int = _f(1000, "Horizon of the linear learning-rate schedule, in updates.", min=1)
+    total_updates: int | None = _f(
+        None,
+        "Horizon of the linear learning-rate schedule, in updates of one policy; null: the run's length in "
+        "updates, runtime.total_env_steps / (clustering.update_every * env.max_episode_steps) (Config.learner_ppo).",
+        min=1,
+    )
     reward_scale: float = _f(
         0.1,
         "Rewards are multiplied by this before GAE, so value targets stay O(1) (toy: about -0.5 per step; "
@@ -382,6 +387,19 @@ class Config:
         """The effective d_eps (the configured one, or the metric's default)."""
         t = self.clustering.threshold
         return DEFAULT_THRESHOLDS[self.clustering.metric] if t is None else t
+
+    @property
+    def updates_per_run(self) -> int:
+        """PPO updates in ``runtime.total_env_steps`` (each takes ``update_every`` episodes), at least 1."""
+        per_update = self.clustering.update_every * self.env.max_episode_steps
+        return max(1, -(-self.runtime.total_env_steps // per_update))
+
+    @property
+    def learner_ppo(self) -> PPOConfig:
+        """``ppo`` as a learner uses it: a null ``total_updates`` is the run's length in updates."""
+        if self.ppo.total_updates is not None:
+            return self.ppo
+        return dataclasses.replace(self.ppo, total_updates=self.updates_per_run)
 
 
 #: Suites whose observation layout carries fixed proprio statistics (``network.proprio_norm``).

@@ -351,7 +351,7 @@ def test_short_peer_runs_on_equal_terms():
     covers-dist, read back from the built algorithms, and the same evaluation."""
     res = _learn_process("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every", "400",
                  "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=48",
-                 "--json", timeout=400)  # fmt: skip
+                 "--set", "ppo.lr_schedule=linear", "--set", "ppo.target_kl=0.02", "--json", timeout=400)  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads(res.stdout.strip().splitlines()[-1])
     for name, framework in (("rllib-cnn", "rllib"), ("sb3", "stable-baselines3")):
@@ -363,7 +363,14 @@ def test_short_peer_runs_on_equal_terms():
         assert hp["framework"] == framework and hp["observation"] == "image + proprio"
         assert (hp["train_batch_env_steps"], hp["epochs"], hp["minibatch_size"]) == (16 * 25, 4, 200)
         assert (hp["lr"], hp["gamma"], hp["gae_lambda"], hp["clip"]) == (1e-3, 0.99, 0.95, 0.2)
-        assert hp["value_clip"] is None and hp["kl_loss"] is False and hp["max_grad_norm"] == 0.5
+        # the linear schedule ends with the peer's own budget: 400 env steps, one batch
+        assert (hp["lr_schedule"], hp["lr_horizon_updates"]) == ("linear", 1)
+        assert hp["value_clip"] is None and hp["max_grad_norm"] == 0.5
+        # the KL stop: SB3's own early stop at the same approximate KL; RLlib has none, its KL loss stands in
+        if name == "sb3":
+            assert hp["target_kl"] == pytest.approx(0.02) and hp["kl_loss"] is False
+        else:
+            assert hp["kl_loss"] is True
         assert hp["reward"]["scale"] == 0.1 and hp["reward"]["normalize_return"] is True
 
 

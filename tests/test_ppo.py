@@ -230,6 +230,43 @@ def test_linear_learning_rate_schedule():
     np.testing.assert_allclose(lrs, [1e-3, 7.5e-4, 5e-4, 2.5e-4, 0.0])
 
 
+def test_a_null_horizon_is_the_runs_length_in_updates():
+    from covers_dist.config import load_config
+
+    # quickstart: 8 episodes of 100 steps per update; 200,000 env steps are 250 updates, 200,001 need 251
+    for total, updates in ((200_000, 250), (200_001, 251), (10, 1)):
+        cfg = load_config("quickstart", [f"runtime.total_env_steps={total}", "ppo.total_updates=null"])
+        assert cfg.ppo.total_updates is None and cfg.learner_ppo.total_updates == updates
+    cfg = load_config("quickstart", ["runtime.total_env_steps=200000", "ppo.total_updates=40"])
+    assert cfg.learner_ppo is cfg.ppo and cfg.learner_ppo.total_updates == 40
+    with pytest.raises(ValueError, match="Config.learner_ppo"):
+        PPOLearner(make_model(), PPOConfig(lr_schedule="linear", total_updates=None))
+
+
+def test_peers_follow_the_learners_schedule_update_by_update():
+    """bench learn's peers get covers-dist's linear schedule: SB3 through its learning-rate callable,
+    RLlib through its piecewise schedule of env steps; each gives update k the learner's rate."""
+    from ray.rllib.utils.schedules.piecewise_schedule import PiecewiseSchedule
+
+    from covers_dist.bench.rllib_peer import lr_setting
+    from covers_dist.bench.sb3_peer import UpdateSchedule
+
+    batch, horizon, lr = 800, 5, 3e-4
+    learner = PPOLearner(make_model(), PPOConfig(lr=lr, lr_schedule="linear", total_updates=horizon))
+    hp = {"lr": lr, "lr_schedule": "linear", "lr_horizon_updates": horizon, "train_batch_env_steps": batch}
+    points = lr_setting(hp)
+    rllib = PiecewiseSchedule(points, outside_value=points[-1][-1], framework=None)
+    sb3 = UpdateSchedule(lr, "linear", horizon, batch)
+    sb3.model = type("Model", (), {"num_timesteps": 0})()
+    for k in range(horizon + 3):
+        learner.update_count = k
+        sb3.model.num_timesteps = (k + 1) * batch  # SB3 updates after sampling its (k + 1)-th batch
+        expected = learner.learning_rate()
+        assert sb3(0.0) == pytest.approx(expected, abs=1e-12)
+        assert rllib.value(k * batch) == pytest.approx(expected, abs=1e-12)  # set after update k - 1
+    assert lr_setting({**hp, "lr_schedule": "constant"}) == lr
+
+
 def test_same_seed_same_actions_and_losses():
     runs = []
     for _ in range(2):

@@ -18,7 +18,8 @@ steps or training minutes is spent. Contenders run one after another, never at o
   (:mod:`covers_dist.bench.sb3_peer`).
 
 Every peer runs on equal terms (:func:`covers_dist.bench.rllib_peer.ppo_settings`): the same batch,
-epochs, minibatch, learning rate, gamma, lambda, clip, gradient clip, entropy and value
+epochs, minibatch, learning rate and schedule (a linear one ends with each contender's own step
+budget: every contender runs with ``runtime.total_env_steps`` = its budget), gamma, lambda, clip, gradient clip, entropy and value
 coefficients, covers-dist's reward treatment (scale, return normalisation), no value clip and no
 KL loss unless the config has them. ``result.json`` prints each contender's effective
 ``hyperparameters``, read back from the built algorithm. Peers get a budget of at least
@@ -820,10 +821,13 @@ def run(args: argparse.Namespace) -> int:
         for name in chosen:
             keep = name in kept
             run_dir = kept[name] if keep else tempfile.mkdtemp(prefix=f"covers-learn-{name}-")
-            extra = [f"runtime.run_dir={run_dir}", f"runtime.serial={str(serial).lower()}"]
             budget = (args.budget_steps, args.budget_minutes)
             if name in PEERS:
                 budget = peer_budget(args, result["contenders"].get("covers"))
+            # the run's length is the contender's step budget: a linear learning-rate schedule with a
+            # null ppo.total_updates ends with it, for covers-dist and each peer alike
+            extra = [f"runtime.run_dir={run_dir}", f"runtime.serial={str(serial).lower()}",
+                     f"runtime.total_env_steps={int(budget[0])}"]  # fmt: skip
             try:
                 cfg = load_config(args.config, [*overrides, *CONTENDER_OVERRIDES.get(name, []), *extra])
                 result["contenders"][name] = _run_contender(name, cfg, elements, evaluator, budget, args, keep)

@@ -156,6 +156,7 @@ def ppo_settings(cfg: Config) -> dict[str, Any]:
         "epochs": int(cfg.ppo.epochs),
         "lr": float(cfg.ppo.lr),
         "lr_schedule": cfg.ppo.lr_schedule,
+        "lr_horizon_updates": cfg.learner_ppo.total_updates if cfg.ppo.lr_schedule == "linear" else None,
         "gamma": float(cfg.ppo.gamma),
         "gae_lambda": float(cfg.ppo.gae_lambda),
         "clip": float(cfg.ppo.clip_coef),
@@ -168,6 +169,23 @@ def ppo_settings(cfg: Config) -> dict[str, Any]:
         "normalize_advantages": bool(cfg.ppo.norm_adv),
         "reward": reward_treatment(cfg),
     }
+
+
+def lr_setting(hp: dict[str, Any]) -> float | list[list[float]]:
+    """RLlib's ``lr`` for covers-dist's schedule: the rate, or for ``linear`` the piecewise schedule
+    from ``lr`` at 0 env steps to 0 after ``lr_horizon_updates`` train batches. RLlib sets the rate
+    after each update from the env steps sampled so far, so its update k runs at
+    ``lr * (1 - k / horizon)``, as covers-dist's learner does."""
+    if hp["lr_schedule"] == "constant":
+        return float(hp["lr"])
+    end = int(hp["lr_horizon_updates"]) * int(hp["train_batch_env_steps"])
+    return [[0, float(hp["lr"])], [end, 0.0]]
+
+
+def _lr_readback(lr: Any, batch: int) -> dict[str, Any]:
+    if isinstance(lr, (list, tuple)):
+        return {"lr": float(lr[0][1]), "lr_schedule": "linear", "lr_horizon_updates": int(lr[-1][0]) // batch}
+    return {"lr": float(lr), "lr_schedule": "constant", "lr_horizon_updates": None}
 
 
 def _scaled(image: np.ndarray) -> np.ndarray:
@@ -229,7 +247,7 @@ def build_rllib_ppo(
         train_batch_size_per_learner=batch,
         minibatch_size=hp["minibatch_size"],
         num_epochs=hp["epochs"],
-        lr=hp["lr"],
+        lr=lr_setting(hp),
         gamma=hp["gamma"],
         lambda_=hp["gae_lambda"],
         clip_param=hp["clip"],
@@ -276,7 +294,7 @@ def rllib_hyperparameters(algo: Any, network: str, cfg: Config) -> dict[str, Any
         "train_batch_env_steps": int(c.train_batch_size_per_learner),
         "minibatch_size": int(c.minibatch_size),
         "epochs": int(c.num_epochs),
-        "lr": float(c.lr),
+        **_lr_readback(c.lr, int(c.train_batch_size_per_learner)),
         "gamma": float(c.gamma),
         "gae_lambda": float(c.lambda_),
         "clip": float(c.clip_param),

@@ -6,7 +6,7 @@ observation (``image`` uint8, SB3 transposes it to channels-first and scales it 
 flattened beside it), then ``net_arch`` of ``network.hidden`` units for the policy and the value
 heads. The same PPO settings as every ``bench learn`` contender
 (:func:`covers_dist.bench.rllib_peer.ppo_settings`): batch of one covers-dist iteration, epochs,
-minibatch, learning rate, gamma, lambda, clip, gradient-norm clip, entropy and value
+minibatch, learning rate and its schedule (:class:`UpdateSchedule`), gamma, lambda, clip, gradient-norm clip, entropy and value
 coefficients, no value clipping unless ``ppo.vf_clip_coef``; reward times ``ppo.reward_scale``
 and, with ``ppo.reward_norm: return``, SB3's own return normalisation
 (``VecNormalize(norm_obs=False, norm_reward=True)``, its reward clip set out of reach).
@@ -25,10 +25,31 @@ import numpy as np
 from ..config import Config
 from .rllib_peer import peer_env, ppo_settings
 
-__all__ = ["build_sb3_ppo", "sb3_hyperparameters", "sb3_greedy"]
+__all__ = ["UpdateSchedule", "build_sb3_ppo", "sb3_hyperparameters", "sb3_greedy"]
 
 #: VecNormalize's reward clip, set out of reach (covers-dist does not clip rewards).
 _NO_CLIP = 1e9
+#: SB3 stops an update at the first minibatch whose approximate KL (the same estimate as
+#: covers-dist's) exceeds 1.5 x its ``target_kl``; covers-dist stops past ``ppo.target_kl`` itself.
+_SB3_KL_FACTOR = 1.5
+
+
+class UpdateSchedule:
+    """SB3's ``learning_rate`` for covers-dist's schedule: ``lr``, or for ``linear``
+    ``lr * max(0, 1 - k / horizon)`` at update k. SB3 passes the progress through the current
+    ``learn()`` call, which ``bench learn`` makes one batch long, so the update count comes from the
+    model's own env steps (``model`` is set once the model is built)."""
+
+    def __init__(self, lr: float, schedule: str, horizon: int | None, batch: int) -> None:
+        self.lr, self.schedule, self.horizon, self.batch = float(lr), schedule, horizon, int(batch)
+        self.model: Any = None
+
+    def __call__(self, _progress_remaining: float) -> float:
+        if self.schedule == "constant" or self.model is None:
+            return self.lr
+        # SB3 updates after each rollout: at update k the model has sampled k + 1 batches
+        done = max(0, int(self.model.num_timesteps) // self.batch - 1)
+        return self.lr * max(0.0, 1.0 - done / int(self.horizon or 1))
 
 
 def build_sb3_ppo(cfg: Config, transforms: Sequence[str]) -> Any:
@@ -59,10 +80,11 @@ def build_sb3_ppo(cfg: Config, transforms: Sequence[str]) -> Any:
         venv = VecNormalize(venv, norm_obs=False, norm_reward=True, gamma=hp["gamma"], clip_reward=_NO_CLIP)
     n_steps = max(1, hp["train_batch_env_steps"] // n_envs)
     torch.set_num_threads(max(1, cfg.runtime.num_cpus))
-    return PPO(
+    schedule = UpdateSchedule(hp["lr"], hp["lr_schedule"], hp["lr_horizon_updates"], n_steps * n_envs)
+    model = PPO(
         "MultiInputPolicy",
         venv,
-        learning_rate=hp["lr"],
+        learning_rate=schedule,
         n_steps=n_steps,
         batch_size=hp["minibatch_size"],
         n_epochs=hp["epochs"],
@@ -74,12 +96,14 @@ def build_sb3_ppo(cfg: Config, transforms: Sequence[str]) -> Any:
         ent_coef=hp["ent_coef"],
         vf_coef=hp["vf_coef"],
         max_grad_norm=hp["max_grad_norm"],
-        target_kl=hp["target_kl"],
+        target_kl=None if hp["target_kl"] is None else hp["target_kl"] / _SB3_KL_FACTOR,
         policy_kwargs={"net_arch": [cfg.network.hidden]},
         seed=cfg.seed,
         device="cpu",
         verbose=0,
     )
+    schedule.model = model
+    return model
 
 
 def sb3_hyperparameters(model: Any, cfg: Config) -> dict[str, Any]:
@@ -98,13 +122,14 @@ def sb3_hyperparameters(model: Any, cfg: Config) -> dict[str, Any]:
         "train_batch_env_steps": int(model.n_steps * model.n_envs),
         "minibatch_size": int(model.batch_size),
         "epochs": int(model.n_epochs),
-        "lr": float(model.learning_rate if not callable(model.learning_rate) else model.learning_rate(1.0)),
+        **_lr_readback(model.learning_rate),
         "gamma": float(model.gamma),
         "gae_lambda": float(model.gae_lambda),
         "clip": float(model.clip_range(1.0)),
         "value_clip": clip_vf,
         "kl_loss": False,
-        "target_kl": model.target_kl,
+        # the approximate KL at which an update stops (SB3 stops past 1.5 x its target_kl)
+        "target_kl": None if model.target_kl is None else model.target_kl * _SB3_KL_FACTOR,
         "max_grad_norm": float(model.max_grad_norm),
         "ent_coef": float(model.ent_coef),
         "vf_coef": float(model.vf_coef),
@@ -117,6 +142,13 @@ def sb3_hyperparameters(model: Any, cfg: Config) -> dict[str, Any]:
         "envs": int(model.n_envs),
         "vec_env": type(venv).__name__,
     }
+
+
+def _lr_readback(lr: Any) -> dict[str, Any]:
+    if isinstance(lr, UpdateSchedule):
+        horizon = lr.horizon if lr.schedule == "linear" else None
+        return {"lr": lr.lr, "lr_schedule": lr.schedule, "lr_horizon_updates": horizon}
+    return {"lr": float(lr(1.0) if callable(lr) else lr), "lr_schedule": "constant", "lr_horizon_updates": None}
 
 
 def sb3_greedy(model: Any) -> Callable[[Mapping[str, np.ndarray]], np.ndarray]:

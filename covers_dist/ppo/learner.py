@@ -14,7 +14,8 @@ counted in ``skipped_steps``. With ``target_kl`` set, the update stops at the fi
 whose approximate KL to the behaviour policy exceeds it (that minibatch is not applied).
 
 The learning rate follows ``lr_schedule``: constant, or linear from ``lr`` at update 0 to 0 at
-update ``total_updates`` (and 0 after). The learner owns the optimizer; :meth:`state_dict`
+update ``total_updates`` (and 0 after; a run's learners get ``Config.learner_ppo``, where a null
+``total_updates`` is the run's length in updates). The learner owns the optimizer; :meth:`state_dict`
 covers the model weights, the optimizer, the update counters and the shuffling RNG.
 
 Episodes acted by another network (``update(..., reevaluate=...)``, the runtime's batch acted by
@@ -192,6 +193,11 @@ class PPOLearner:
     def __init__(self, model: torch.nn.Module, ppo_cfg: PPOConfig, seed: int = 0) -> None:
         if not isinstance(ppo_cfg, PPOConfig):
             raise TypeError(f"ppo_cfg must be a PPOConfig, got {type(ppo_cfg).__name__}")
+        if ppo_cfg.lr_schedule == "linear" and ppo_cfg.total_updates is None:
+            raise ValueError(
+                "ppo.lr_schedule=linear needs ppo.total_updates; a null one is the run's length: "
+                "pass Config.learner_ppo, not Config.ppo"
+            )
         for name in ("evaluate_actions", "get_weights", "set_weights"):
             if not callable(getattr(model, name, None)):
                 raise TypeError(f"model must provide {name}() (an ActorCritic), got {type(model).__name__}")

@@ -58,7 +58,7 @@ class PolicyLearner:
         layout = suite_layout(cfg.env.suite, cfg.env.image_size)
         torch.manual_seed(policy_seed(cfg.seed, policy_id))
         self.model = build_actor_critic(cfg.network, layout).to(self.device)
-        self.ppo = PPOLearner(self.model, cfg.ppo, seed=policy_seed(cfg.seed, policy_id))
+        self.ppo = PPOLearner(self.model, cfg.learner_ppo, seed=policy_seed(cfg.seed, policy_id))
         self.version = 0
         #: version after an update -> (statistics, weights) of that update, newest KEEP_RESULTS
         self.results: dict[int, tuple[dict[str, Any], dict[str, torch.Tensor]]] = {}
