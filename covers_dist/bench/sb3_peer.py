@@ -6,10 +6,11 @@ observation (``image`` uint8, SB3 transposes it to channels-first and scales it 
 flattened beside it), then ``net_arch`` of ``network.hidden`` units for the policy and the value
 heads. The same PPO settings as every ``bench learn`` contender
 (:func:`covers_dist.bench.rllib_peer.ppo_settings`): batch of one covers-dist iteration, epochs,
-minibatch, learning rate and its schedule (:class:`UpdateSchedule`), gamma, lambda, clip, gradient-norm clip, entropy and value
-coefficients, no value clipping unless ``ppo.vf_clip_coef``; reward times ``ppo.reward_scale``
-and, with ``ppo.reward_norm: return``, SB3's own return normalisation
-(``VecNormalize(norm_obs=False, norm_reward=True)``, its reward clip set out of reach).
+minibatch, learning rate and its schedule (:class:`UpdateSchedule`), gamma, lambda, clip,
+gradient-norm clip, the KL stop (``ppo.target_kl``), entropy and value coefficients, no value
+clipping unless ``ppo.vf_clip_coef``; reward times ``ppo.reward_scale`` and, with
+``ppo.reward_norm: return``, SB3's own return normalisation (``VecNormalize(norm_obs=False,
+norm_reward=True)``, its reward clip set out of reach).
 ``runtime.num_workers * runtime.envs_per_worker`` envs, each in its own process
 (``SubprocVecEnv``) when there is more than one worker; every reset runs a random element of the
 group (:class:`~covers_dist.bench.rllib_peer.PeerTask`).
