@@ -389,10 +389,14 @@ class Config:
         return DEFAULT_THRESHOLDS[self.clustering.metric] if t is None else t
 
     @property
+    def steps_per_update(self) -> int:
+        """Env steps of one iteration and its PPO update: ``update_every`` episodes of ``max_episode_steps``."""
+        return self.clustering.update_every * self.env.max_episode_steps
+
+    @property
     def updates_per_run(self) -> int:
-        """PPO updates in ``runtime.total_env_steps`` (each takes ``update_every`` episodes), at least 1."""
-        per_update = self.clustering.update_every * self.env.max_episode_steps
-        return max(1, -(-self.runtime.total_env_steps // per_update))
+        """PPO updates in ``runtime.total_env_steps``, at least 1."""
+        return max(1, -(-self.runtime.total_env_steps // self.steps_per_update))
 
     @property
     def learner_ppo(self) -> PPOConfig:
@@ -443,7 +447,7 @@ def _validate_cross_fields(cfg: Config) -> None:
         raise ConfigError(
             f"runtime.method={cfg.runtime.method} needs network.kind=equivariant, got {cfg.network.kind}"
         )
-    steps_per_update = cfg.clustering.update_every * cfg.env.max_episode_steps
+    steps_per_update = cfg.steps_per_update
     if cfg.ppo.minibatch_size > steps_per_update:
         raise ConfigError(
             f"ppo.minibatch_size={cfg.ppo.minibatch_size} exceeds the env steps of one update "

@@ -22,8 +22,8 @@ epochs, minibatch, learning rate and schedule (a linear one ends with each conte
 budget: every contender runs with ``runtime.total_env_steps`` = its budget), gamma, lambda, clip,
 gradient clip, entropy and value coefficients, covers-dist's reward treatment (scale, return
 normalisation), no value clip unless the config has one; with ``ppo.target_kl``, SB3 stops its
-updates at the same approximate KL and RLlib, which has no such stop, gets its KL loss instead. ``result.json`` prints each contender's effective
-``hyperparameters``, read back from the built algorithm. Peers get a budget of at least
+updates at the same approximate KL and RLlib, which has no such stop, gets its KL loss instead.
+``result.json`` prints each contender's effective ``hyperparameters``, read back from the built algorithm. Peers get a budget of at least
 ``--peer-budget-factor`` (default 4) times the training time and env steps covers-dist needed
 when ``covers`` ran first in the same invocation and was solved, so a peer's miss is a figure,
 not a bound.

@@ -149,7 +149,7 @@ def reward_treatment(cfg: Config) -> dict[str, Any]:
 
 def ppo_settings(cfg: Config) -> dict[str, Any]:
     """The PPO hyperparameters every contender of ``bench learn`` shares, read from ``cfg``."""
-    batch = cfg.clustering.update_every * cfg.env.max_episode_steps
+    batch = cfg.steps_per_update
     return {
         "train_batch_env_steps": int(batch),
         "minibatch_size": int(min(cfg.ppo.minibatch_size, batch)),

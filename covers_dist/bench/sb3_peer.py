@@ -46,11 +46,11 @@ class UpdateSchedule:
         self.model: Any = None
 
     def __call__(self, _progress_remaining: float) -> float:
-        if self.schedule == "constant" or self.model is None:
-            return self.lr
+        from ..ppo.learner import scheduled_learning_rate
+
         # SB3 updates after each rollout: at update k the model has sampled k + 1 batches
-        done = max(0, int(self.model.num_timesteps) // self.batch - 1)
-        return self.lr * max(0.0, 1.0 - done / int(self.horizon or 1))
+        done = 0 if self.model is None else max(0, int(self.model.num_timesteps) // self.batch - 1)
+        return scheduled_learning_rate(self.lr, self.schedule, done, self.horizon)
 
 
 def build_sb3_ppo(cfg: Config, transforms: Sequence[str]) -> Any:
@@ -145,11 +145,9 @@ def sb3_hyperparameters(model: Any, cfg: Config) -> dict[str, Any]:
     }
 
 
-def _lr_readback(lr: Any) -> dict[str, Any]:
-    if isinstance(lr, UpdateSchedule):
-        horizon = lr.horizon if lr.schedule == "linear" else None
-        return {"lr": lr.lr, "lr_schedule": lr.schedule, "lr_horizon_updates": horizon}
-    return {"lr": float(lr(1.0) if callable(lr) else lr), "lr_schedule": "constant", "lr_horizon_updates": None}
+def _lr_readback(lr: UpdateSchedule) -> dict[str, Any]:
+    horizon = lr.horizon if lr.schedule == "linear" else None
+    return {"lr": lr.lr, "lr_schedule": lr.schedule, "lr_horizon_updates": horizon}
 
 
 def sb3_greedy(model: Any) -> Callable[[Mapping[str, np.ndarray]], np.ndarray]:

@@ -187,6 +187,13 @@ def _explained_variance(values: torch.Tensor, returns: torch.Tensor) -> float:
     return float("nan") if var == 0.0 else 1.0 - float((returns - values).var(unbiased=False)) / var
 
 
+def scheduled_learning_rate(lr: float, schedule: str, update: int, total_updates: int | None) -> float:
+    """The rate of update ``update`` (0-based): ``lr``, or for ``linear`` ``lr * max(0, 1 - update / total_updates)``."""
+    if schedule == "constant":
+        return lr
+    return lr * max(0.0, 1.0 - update / int(total_updates or 1))
+
+
 class PPOLearner:
     """PPO-clip updates of ``model`` (an :class:`covers_dist.models.ActorCritic`) as configured."""
 
@@ -215,9 +222,7 @@ class PPOLearner:
 
     def learning_rate(self) -> float:
         """The learning rate the next update will use."""
-        if self.cfg.lr_schedule == "constant":
-            return self.cfg.lr
-        return self.cfg.lr * max(0.0, 1.0 - self.update_count / self.cfg.total_updates)
+        return scheduled_learning_rate(self.cfg.lr, self.cfg.lr_schedule, self.update_count, self.cfg.total_updates)
 
     @torch.no_grad()
     def reevaluate(self, episodes: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
