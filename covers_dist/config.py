@@ -298,6 +298,13 @@ class RuntimeConfig:
         min=0,
         max=19,
     )
+    time_limit_minutes: float | None = _f(
+        None,
+        "Stop training after this many minutes of wall clock in the training loop (counted from the start or the "
+        "resume, evaluation passes that run meanwhile included), then run the final evaluation pass and checkpoint "
+        "as at total_env_steps (null: no limit).",
+        gt=0.0,
+    )
     log_every_s: float = _f(5.0, "Seconds between console progress lines.", gt=0.0)
     log_rotate_mb: float | None = _f(
         64.0,
@@ -358,6 +365,18 @@ class EvalConfig:
         "and/or oracle (the policy that trained on the pair's true group).",
     )
     tasks: list[str] | None = _f(None, "Base tasks to evaluate (null: all of env.tasks).")
+    stop_at: float | None = _f(
+        None,
+        "Stop training once a group's greedy success on its worst (task, g) pair is >= this at eval.held "
+        "consecutive passes (eval.stop_groups says whether one group or every evaluated group must), then run the "
+        "final pass and checkpoint (null: never; needs eval.every_iterations > 0 and greedy in eval.modes).",
+        gt=0.0,
+        max=1.0,
+    )
+    stop_groups: Literal["any", "all"] = _f(
+        "all", "For eval.stop_at: stop when any evaluated group meets it, or only when all of them do."
+    )
+    held: int = _f(2, "Consecutive passes at which a group must meet eval.stop_at.", min=1)
     workers: int = _f(1, "Ray evaluation actors (serial runs evaluate in the driver's process).", min=1)
     num_cpus: float = _f(
         0.0,
@@ -459,6 +478,11 @@ def _validate_cross_fields(cfg: Config) -> None:
             raise ConfigError(f"eval.tasks={cfg.eval.tasks}: every entry must be one of env.tasks={cfg.env.tasks}")
     if not cfg.eval.modes or not cfg.eval.selections:
         raise ConfigError(f"eval.modes={cfg.eval.modes} and eval.selections={cfg.eval.selections} must not be empty")
+    if cfg.eval.stop_at is not None and (cfg.eval.every_iterations == 0 or "greedy" not in cfg.eval.modes):
+        raise ConfigError(
+            f"eval.stop_at={cfg.eval.stop_at} needs periodic greedy passes: eval.every_iterations > 0 (got "
+            f"{cfg.eval.every_iterations}) and 'greedy' in eval.modes (got {cfg.eval.modes})"
+        )
     if not cfg.runtime.serial and cfg.runtime.ray_address is None and cfg.runtime.num_workers > 64:
         raise ConfigError(f"runtime.num_workers={cfg.runtime.num_workers} is too many for a local Ray instance")
 

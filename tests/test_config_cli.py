@@ -94,6 +94,15 @@ def test_overrides_parse_values_as_yaml():
         ({"network": {"proprio_norm": True}}, r"network.proprio_norm=true: env.suite=toy has no proprio statistics"),
         ({"network": {"proprio_norm": "on"}}, r"network.proprio_norm: expected true or false"),
         ({"network": {"action_mean": "sigmoid"}}, r"network.action_mean: expected one of"),
+        ({"runtime": {"time_limit_minutes": 0}}, r"runtime.time_limit_minutes=0.0 must be > 0.0"),
+        ({"eval": {"stop_at": 1.5, "every_iterations": 5}}, r"eval.stop_at=1.5 must be <= 1.0"),
+        ({"eval": {"stop_at": 0.9}}, r"eval.stop_at=0.9 needs periodic greedy passes: eval.every_iterations > 0"),
+        (
+            {"eval": {"stop_at": 0.9, "every_iterations": 5, "modes": ["stochastic"]}},
+            r"'greedy' in eval.modes \(got \['stochastic'\]\)",
+        ),
+        ({"eval": {"stop_groups": "most"}}, r"eval.stop_groups: expected one of"),
+        ({"eval": {"held": 0}}, r"eval.held=0 must be >= 1"),
     ],
 )
 def test_bad_configs_name_the_field(data, match):

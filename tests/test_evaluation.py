@@ -26,6 +26,7 @@ from covers_dist.evaluation import (
     read_passes,
     run_evaluation,
 )
+from covers_dist.evaluation.metrics import group_worst, held_groups
 from covers_dist.evaluation.protocol import EvalPair, pair_rows, plan_jobs
 from covers_dist.runtime import evaluation as runtime_evaluation
 from covers_dist.runtime.driver import Trainer
@@ -207,9 +208,11 @@ def test_continual_metrics_and_metric_row_keys():
         "eval/average_forgetting",
         "eval/average_forward_transfer",
         "eval/success/A",
+        "eval/success_worst/A",
         "eval/success_oracle/A",
         "eval/return/A",
         "eval/success/B",
+        "eval/success_worst/B",
         "eval/success_held_out/B",
         "eval/return/B",
         "eval/forgetting/A",
@@ -218,6 +221,44 @@ def test_continual_metrics_and_metric_row_keys():
     assert all(isinstance(v, float) for v in r.values())
     with pytest.raises(ValueError, match="no evaluation passes"):
         continual_metrics([])
+
+
+def test_worst_pair_and_groups_held_at_a_threshold_over_consecutive_passes():
+    """The worst pair counts every (task, g), held-out and unseen ones too; a group is held when its
+    worst pair meets the threshold at each of the last ``held`` passes, not just at some of them."""
+    p1 = fake_pass(1, [row("A", "e", "seen", 1.0), row("A", "r", "held_out", 0.5), row("B", "e", "seen", 1.0)], seen("A", "B"))
+    p2 = fake_pass(2, [row("A", "e", "seen", 1.0), row("A", "r", "held_out", 0.95), row("B", "e", "seen", 0.8)], seen("A", "B"))
+    p3 = fake_pass(3, [row("A", "e", "seen", 0.9), row("A", "r", "held_out", 1.0), row("B", "e", "seen", 1.0),
+                       {"task": "B", "g": "r", "status": "unseen", "results": {}}], seen("A", "B"))
+    assert group_worst(p1, "A") == 0.5 and group_worst(p3, "B") == 1.0  # a pair that did not run is left out
+    assert pass_summary(p2)["groups"]["A"]["success_worst"] == 0.95
+    assert held_groups([p1, p2, p3], 0.9, 2) == ["A"]  # B fell to 0.8 at pass 2
+    assert held_groups([p1, p2, p3], 0.9, 1) == ["A", "B"]
+    assert held_groups([p1, p2, p3], 0.9, 3) == []  # A's held-out pair was at 0.5 at pass 1
+    assert held_groups([p3], 0.9, 2) == []  # fewer passes than asked for
+    assert held_groups([p1, p2, p3], 0.95, 2) == []  # A's 0.9 at pass 3
+    with pytest.raises(ValueError, match="held=0"):
+        held_groups([p1], 0.9, 0)
+
+
+@pytest.mark.parametrize(
+    "settings, stops",
+    [
+        ({"stop_at": 0.9, "held": 2, "stop_groups": "any"}, "A: greedy success >= 0.9 on every (task, g) at 2 passes"),
+        ({"stop_at": 0.9, "held": 2, "stop_groups": "all"}, None),  # B not held
+        ({"stop_at": 0.9, "held": 1, "stop_groups": "all"}, "A, B: greedy success >= 0.9"),
+        ({"stop_at": None}, None),
+    ],
+)
+def test_stop_reason_follows_eval_stop_at_and_stop_groups(tmp_path, settings, stops):
+    cfg = tiny_cfg(tmp_path, "eval.every_iterations=1", *(f"eval.{k}={'null' if v is None else v}" for k, v in settings.items()))
+    evaluation = runtime_evaluation.PeriodicEvaluation(cfg, tmp_path, background=False)
+    evaluation.passes = [
+        fake_pass(1, [row("A", "e", "seen", 1.0), row("B", "e", "seen", 0.5)], seen("A", "B")),
+        fake_pass(2, [row("A", "e", "seen", 0.9), row("B", "e", "seen", 1.0)], seen("A", "B")),
+    ]
+    reason = evaluation.stop_reason()
+    assert reason == stops if stops is None else reason.startswith(stops)
 
 
 def test_read_passes_names_a_corrupt_line_and_keeps_the_newest_pass_per_iteration(tmp_path):
@@ -621,6 +662,45 @@ def test_background_pass_still_running_at_the_end_is_followed_by_a_final_pass(tm
     assert spied == [[0]] * 8 + [published] * 8
     rows = lines(tmp_path / "metrics.jsonl")
     assert rows[-1]["iteration"] == 2 and "eval/success/reach" in rows[-1]
+
+
+def test_training_stops_once_a_group_is_held_and_at_the_time_limit(tmp_path, monkeypatch, one_torch_thread):
+    """The driver's early stops on real serial runs. Toy groups do not reach 0.9 in a few iterations,
+    so the passes' figures for reach are set to 1.0 from iteration 3 on: the stop, not learning, is
+    under test. Held at 2 passes means passes 3 and 4; push never is, and stop_groups=any suffices."""
+    real = runtime_evaluation.evaluation_pass
+
+    def reach_solved_from_iteration_3(*args, **kwargs):
+        ev = real(*args, **kwargs)
+        for r in ev["pairs"]:
+            if r["task"] == "reach" and ev["iteration"] >= 3:
+                for res in r["results"].values():
+                    res["success"] = 1.0
+        return ev
+
+    monkeypatch.setattr(runtime_evaluation, "evaluation_pass", reach_solved_from_iteration_3)
+    quick = ["eval.tasks=[reach,push]", "eval.modes=[greedy]", "eval.selections=[agnostic]", "eval.episodes=1"]
+    logs = []
+    cfg = tiny_cfg(
+        tmp_path / "held", "runtime.total_env_steps=2000", "eval.every_iterations=1", "eval.stop_at=0.9",
+        "eval.stop_groups=any", *quick,
+    )
+    trainer = Trainer(cfg, log=logs.append)
+    result = trainer.run()
+    trainer.close()
+    assert result["status"] == "finished" and result["row"]["env_steps"] == 800
+    assert result["stopped_early"].startswith("reach: greedy success >= 0.9 on every (task, g) at 2 passes in a row")
+    assert any(line.startswith("stopping at 800 env steps: reach:") for line in logs)
+    assert [p["iteration"] for p in lines(tmp_path / "held" / "eval.jsonl")] == [1, 2, 3, 4]  # no extra final pass
+    assert (tmp_path / "held" / "checkpoints" / "ckpt-000004").is_dir()
+
+    cfg = tiny_cfg(tmp_path / "timed", "runtime.time_limit_minutes=1e-6", "eval.every_iterations=5", *quick)
+    trainer = Trainer(cfg, log=lambda *_: None)
+    result = trainer.run()
+    trainer.close()
+    assert result["status"] == "finished" and result["row"]["env_steps"] == 200
+    assert result["stopped_early"] == "the time limit of 1e-06 min (runtime.time_limit_minutes)"
+    assert [p["iteration"] for p in lines(tmp_path / "timed" / "eval.jsonl")] == [1]  # the final pass still runs
 
 
 # ---- Ray ---------------------------------------------------------------------------------------------

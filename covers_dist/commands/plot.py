@@ -14,7 +14,8 @@ and, when the run has evaluation passes (``eval.jsonl``):
 
 * ``eval_heatmap.png``: greedy success of every (task, g) at the latest pass, policy chosen by the
   bank (held-out pairs marked H, unseen U);
-* ``eval_success.png``: evaluation success of each group over env steps, with the moments each
+* ``eval_success.png``: evaluation success of each group over env steps (its mean over every
+  (task, g) and its worst (task, g), the figure ``eval.stop_at`` judges), with the moments each
   group appears in the stream (dotted lines in its colour) and the average over groups seen.
 """
 
@@ -180,7 +181,7 @@ def eval_plots(run: Path, episodes: list[dict[str, Any]], colors: dict[str, Any]
     import matplotlib.pyplot as plt
 
     from ..evaluation import read_passes
-    from ..evaluation.metrics import group_success, pass_summary
+    from ..evaluation.metrics import group_success, group_worst, pass_summary
 
     try:
         passes = read_passes(run)
@@ -220,6 +221,8 @@ def eval_plots(run: Path, episodes: list[dict[str, Any]], colors: dict[str, Any]
                 color=color)  # fmt: skip
         ax.plot(steps, [np.nan if (v := group_success(ev, t, key="greedy/oracle")) is None else v for ev in passes],
                 ":", color=color, alpha=0.6)  # fmt: skip
+        ax.plot(steps, [np.nan if (v := group_worst(ev, t)) is None else v for ev in passes], "--", color=color,
+                alpha=0.8)  # fmt: skip
     avg = [pass_summary(ev)["average_success"] for ev in passes]
     ax.plot(steps, [np.nan if v is None else v for v in avg], "k--", label="average (groups seen)")
     steps_at = dict(zip([e["episode_index"] for e in episodes], np.cumsum([e["length"] for e in episodes])))
@@ -229,7 +232,8 @@ def eval_plots(run: Path, episodes: list[dict[str, Any]], colors: dict[str, Any]
             ax.axvline(steps_at[e["episode_index"]] - e["length"], color=colors.get(e["task"], "grey"), ls=":", lw=1)
         prev = e["task"]
     ax.set(xlabel="env steps", ylabel="greedy success (evaluation)", ylim=(-0.05, 1.05),
-           title="evaluation success per group (solid: bank's choice, dotted: oracle policy); lines: group switches")  # fmt: skip
+           title="greedy success per group (solid: mean over (task, g), dashed: worst (task, g), dotted: oracle "
+                 "policy's mean); lines: group switches")  # fmt: skip
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     paths.append(_save(fig, run / "eval_success.png"))

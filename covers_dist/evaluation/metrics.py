@@ -15,6 +15,9 @@ NeurIPS 2021, section 3 (docs/RESULTS.md gives the formulas with this project's 
   on its own training time), ``ref`` a run that trained on group ``i`` alone, both up to the
   shorter of the two budgets;
 * zero-shot success: mean greedy success over the held-out pairs (never trained on).
+* worst-pair success of group ``i`` at pass ``t``: the lowest greedy success over all of its
+  ``(task, g)`` pairs; a group is *held* at ``threshold`` when its worst pair meets it at ``held``
+  consecutive passes (``eval.stop_at`` stops training on it, as ``bench learn``'s "solved").
 
 An evaluation pass is the JSON object that ``eval.jsonl`` holds one per line (see
 :mod:`covers_dist.evaluation.runner`). Plain Python + numpy.
@@ -32,6 +35,8 @@ from .stats import wilson_interval
 __all__ = [
     "pair_success",
     "group_success",
+    "group_worst",
+    "held_groups",
     "groups_seen",
     "pass_summary",
     "forgetting",
@@ -65,6 +70,31 @@ def group_success(
     return _mean([pair_success(r, key, field) for r in ev["pairs"] if r["task"] == task and r["status"] in statuses])
 
 
+def group_worst(ev: dict[str, Any], task: str, key: str = "greedy/agnostic") -> float | None:
+    """Lowest success over every ``(task, g)`` pair of ``task`` at pass ``ev``, held-out and unseen pairs
+    included: "solved on every transform" is judged by it (None: no pair ran)."""
+    values = [pair_success(r, key) for r in ev["pairs"] if r["task"] == task]
+    values = [v for v in values if v is not None]
+    return float(min(values)) if values else None
+
+
+def held_groups(passes: Sequence[dict[str, Any]], threshold: float, held: int, key: str = "greedy/agnostic") -> list[str]:
+    """Tasks whose worst pair (:func:`group_worst`) is >= ``threshold`` at each of the last ``held``
+    passes (oldest first), in the order of the last pass's pairs; [] before ``held`` passes."""
+    if held < 1:
+        raise ValueError(f"held={held} must be >= 1")
+    if len(passes) < held:
+        return []
+    last = passes[-held:]
+    tasks = dict.fromkeys(r["task"] for r in last[-1]["pairs"])
+
+    def meets(ev: dict[str, Any], task: str) -> bool:
+        worst = group_worst(ev, task, key)
+        return worst is not None and worst >= threshold
+
+    return [t for t in tasks if all(meets(ev, t) for ev in last)]
+
+
 def group_counts(
     ev: dict[str, Any], task: str, key: str = "greedy/agnostic", statuses: Sequence[str] = TRAINABLE
 ) -> dict[str, Any] | None:
@@ -91,6 +121,7 @@ def pass_summary(ev: dict[str, Any]) -> dict[str, Any]:
     for t in tasks:
         per[t] = {
             "success": group_success(ev, t),
+            "success_worst": group_worst(ev, t),
             "success_seen": group_success(ev, t, statuses=("seen",)),
             "success_held_out": group_success(ev, t, statuses=("held_out",)),
             "success_oracle": group_success(ev, t, key="greedy/oracle"),
@@ -185,7 +216,7 @@ def metric_row(cl: dict[str, Any], prefix: str = "eval") -> dict[str, float]:
         if cl.get(name) is not None:
             row[f"{prefix}/{name}"] = float(cl[name])
     for task, g in cl["groups"].items():
-        for name in ("success", "success_held_out", "success_oracle", "return"):
+        for name in ("success", "success_worst", "success_held_out", "success_oracle", "return"):
             if g.get(name) is not None:
                 row[f"{prefix}/{name}/{task}"] = float(g[name])
     for name in ("forgetting", "forward_transfer"):

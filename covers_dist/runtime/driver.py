@@ -199,8 +199,9 @@ class Trainer:
         self._stop = True
 
     def run(self) -> dict[str, Any]:
-        """Step until ``runtime.total_env_steps`` (or a signal): log, evaluate and checkpoint on
-        schedule, then a final evaluation pass and checkpoint."""
+        """Step until ``runtime.total_env_steps``, ``runtime.time_limit_minutes``, ``eval.stop_at``
+        or a signal: log, evaluate and checkpoint on schedule, then (unless a signal ended it) a final
+        evaluation pass, and a checkpoint."""
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         resumed_at = None
         if self._resume_from is not None:  # rows of iterations after the checkpoint are redone: drop them
@@ -213,10 +214,12 @@ class Trainer:
             else:
                 self.start_policy(0)
             announce(storage_location(self.cfg), "driver")  # recorded once the loop runs
-            progress = Progress(rt.total_env_steps, rt.log_every_s, self.env_steps)
             self.clock_start, self.clock_steps = time.monotonic(), self.env_steps
+            deadline = None if rt.time_limit_minutes is None else self.clock_start + 60.0 * rt.time_limit_minutes
+            progress = Progress(rt.total_env_steps, rt.log_every_s, self.env_steps, deadline=deadline)
             row: dict[str, Any] = {}
-            while self.env_steps < rt.total_env_steps and not self._stop:
+            reason = None  # why the loop ended before total_env_steps (not a signal)
+            while self.env_steps < rt.total_env_steps and not self._stop and reason is None:
                 row = self.step()
                 if self.evaluation.due(self.iteration):
                     self.start_evaluation()
@@ -228,6 +231,7 @@ class Trainer:
                     hook()
                 if self.iteration % rt.checkpoint_every == 0:
                     self.checkpoint()
+                reason = self._early_stop(deadline)
             if row and self.evaluation.enabled and not self._stop:  # a final pass, unless interrupted
                 final = self.evaluation.collect(wait=True)  # a pass still running in the background
                 if self.evaluation.last_iteration != self.iteration:
@@ -242,11 +246,25 @@ class Trainer:
                 progress.maybe_print(row, force=True)
             status = "interrupted" if self._stop else "finished"
             self.log(f"{status}: checkpoint {path}; resume with: covers-dist train --resume {self.run_dir}")
-            return {"status": status, "row": row, "checkpoint": str(path), **self.backend.call_clustering("metrics")}
+            out = {"status": status, "row": row, "checkpoint": str(path), **self.backend.call_clustering("metrics")}
+            return {**out, "stopped_early": reason} if reason is not None else out
         finally:
             writer.close()
             for s, h in old.items():
                 signal.signal(s, h)
+
+    def _early_stop(self, deadline: float | None) -> str | None:
+        """Why the loop ends before ``runtime.total_env_steps`` (None: it goes on): groups held under
+        ``eval.stop_at``, or ``runtime.time_limit_minutes`` reached (``deadline``, monotonic clock)."""
+        rt = self.cfg.runtime
+        if self.env_steps >= rt.total_env_steps:
+            return None
+        reason = self.evaluation.stop_reason()
+        if reason is None and deadline is not None and time.monotonic() >= deadline:
+            reason = f"the time limit of {rt.time_limit_minutes:g} min (runtime.time_limit_minutes)"
+        if reason is not None:
+            self.log(f"stopping at {self.env_steps} env steps: {reason}")
+        return reason
 
     def start_evaluation(self) -> None:
         """Evaluate every (task, g) with the bank as it is now (serial: in place; Ray: in the background)."""

@@ -21,6 +21,7 @@ from typing import Any, Callable
 from ..config import Config
 from ..envs.stream import TaskStream
 from ..evaluation import append_pass, continual_metrics, eval_pairs, metric_row, read_passes, run_evaluation
+from ..evaluation.metrics import held_groups
 from ..evaluation.protocol import oracle_policies
 
 __all__ = [
@@ -195,9 +196,25 @@ class PeriodicEvaluation:
             f"{ev.get('distinct_initial_states', 'n/a')} initial states, "
             f"{ev['time_s']['total']:.0f} s): average success {_fmt(cl['average_success'])}, "
             f"zero-shot {_fmt(cl['zero_shot_success'])}, per group "
-            + " ".join(f"{t}={_fmt(g['success'])}" for t, g in cl["groups"].items())
+            + " ".join(f"{t}={_fmt(g['success'])} (worst {_fmt(g['success_worst'])})" for t, g in cl["groups"].items())
         )
         return metric_row(cl)
+
+    def stop_reason(self) -> str | None:
+        """Why training should stop now under ``eval.stop_at`` (None: go on, or no rule): the groups
+        held at the threshold over the last ``eval.held`` passes, once ``eval.stop_groups`` is met."""
+        ev = self.cfg.eval
+        if ev.stop_at is None or not self.passes:
+            return None
+        key = "greedy/agnostic" if "agnostic" in ev.selections else "greedy/oracle"
+        held = held_groups(self.passes, ev.stop_at, ev.held, key)
+        evaluated = list(dict.fromkeys(r["task"] for r in self.passes[-1]["pairs"]))
+        if not held or (ev.stop_groups == "all" and set(held) != set(evaluated)):
+            return None
+        return (
+            f"{', '.join(held)}: greedy success >= {ev.stop_at:g} on every (task, g) at {ev.held} "
+            f"pass{'es' if ev.held > 1 else ''} in a row ({key}, eval.stop_at)"
+        )
 
 
 def _fmt(v: float | None) -> str:

@@ -151,10 +151,11 @@ class MetricsWriter:
 class Progress:
     """Periodic console progress lines with rates and ETA."""
 
-    def __init__(self, total_env_steps: int, every_s: float, start_steps: int = 0) -> None:
+    def __init__(self, total_env_steps: int, every_s: float, start_steps: int = 0, deadline: float | None = None) -> None:
         self.total = total_env_steps
         self.every_s = every_s
         self.t0 = time.monotonic()
+        self.deadline = deadline  # time.monotonic() at which a time limit ends the run (ETA: whichever comes first)
         self.start_steps = start_steps
         self._last = -math.inf
 
@@ -166,6 +167,8 @@ class Progress:
         steps = row.get(M.ENV_STEPS, 0)
         rate = (steps - self.start_steps) / max(now - self.t0, 1e-9)
         eta = (self.total - steps) / rate if rate > 0 else math.inf
+        if self.deadline is not None:
+            eta = min(eta, max(self.deadline - now, 0.0))
         succ = " ".join(
             f"{k.split('/', 1)[1]}={v:.2f}" for k, v in sorted(row.items()) if k.startswith(M.SUCCESS + "/")
         )

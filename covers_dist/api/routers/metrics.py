@@ -144,6 +144,8 @@ EVAL_SCALARS = (
 )  # fmt: skip
 EVAL_PER_TASK = (
     ("covers_eval_success_ratio", "eval/success/", "Evaluation: greedy success per base task (bank's choice, 0..1)."),
+    ("covers_eval_success_worst_ratio", "eval/success_worst/",
+     "Evaluation: greedy success on the base task's worst (task, g) pair (bank's choice, 0..1)."),
     ("covers_eval_forgetting_ratio", "eval/forgetting/",
      "Evaluation: best earlier success minus latest, per base task."),
 )  # fmt: skip
