@@ -664,6 +664,25 @@ def test_background_pass_still_running_at_the_end_is_followed_by_a_final_pass(tm
     assert rows[-1]["iteration"] == 2 and "eval/success/reach" in rows[-1]
 
 
+def test_a_background_pass_that_ends_just_before_the_next_starts_is_still_collected(tmp_path):
+    """On Ray a pass runs in a thread and is collected at the next iteration; when it ends just
+    before the next pass is due, starting that pass must not drop it."""
+    cfg = tiny_cfg(tmp_path, "eval.every_iterations=1")
+    evaluation = runtime_evaluation.PeriodicEvaluation(cfg, tmp_path, background=True, log=lambda *_: None)
+
+    def make(iteration):
+        ev = fake_pass(iteration, [row("A", "e", "seen", iteration / 10)], seen("A"))
+        return lambda: {**ev, "eval_episodes": 1, "time_s": {"total": 0.0}}
+
+    evaluation.start(1, make(1))
+    evaluation._thread.join()  # pass 1 done, not collected yet
+    evaluation.start(2, make(2))
+    metrics = evaluation.collect(wait=True)
+    assert [p["iteration"] for p in lines(tmp_path / "eval.jsonl")] == [1, 2]
+    assert metrics["eval/success/A"] == pytest.approx(0.2)  # the newest pass's figures
+    assert evaluation.collect() == {}
+
+
 def test_training_stops_once_a_group_is_held_and_at_the_time_limit(tmp_path, monkeypatch, one_torch_thread):
     """The driver's early stops on real serial runs. Toy groups do not reach 0.9 in a few iterations,
     so the passes' figures for reach are set to 1.0 from iteration 3 on: the stop, not learning, is

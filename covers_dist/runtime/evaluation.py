@@ -105,7 +105,7 @@ class PeriodicEvaluation:
         self.log = log
         self.passes = read_passes(self.run_dir)  # earlier passes of a resumed run
         self._thread: threading.Thread | None = None
-        self._result: dict[str, Any] | None = None
+        self._finished: list[dict[str, Any]] = []  # passes done and not collected yet, oldest first
         self._error: str | None = None
         self.last_iteration = self.passes[-1].get("iteration", -1) if self.passes else -1
 
@@ -162,12 +162,12 @@ class PeriodicEvaluation:
             return
         self.last_iteration = iteration
         if not self.background:
-            self._result = make_pass()
+            self._finished.append(make_pass())
             return
 
         def target() -> None:
             try:
-                self._result = make_pass()
+                self._finished.append(make_pass())
             except Exception:  # noqa: BLE001 - reported by collect(); training goes on
                 self._error = traceback.format_exc(limit=4)
 
@@ -175,30 +175,33 @@ class PeriodicEvaluation:
         self._thread.start()
 
     def collect(self, wait: bool = False) -> dict[str, float]:
-        """Write a finished pass to eval.jsonl; returns its ``eval/...`` metrics ({} if none)."""
+        """Write the passes finished since the last call to eval.jsonl (a pass that ended just before
+        the next one started included); returns the newest one's ``eval/...`` metrics ({} if none)."""
         if self._thread is not None:
             if wait:
                 self._thread.join()
-            if self._thread.is_alive():
-                return {}
-            self._thread = None
+            if not self._thread.is_alive():
+                self._thread = None
         if self._error is not None:
             self.log(f"warning: an evaluation pass failed and was skipped:\n{self._error}")
             self._error = None
-        if self._result is None:
-            return {}
-        ev, self._result = self._result, None
-        append_pass(self.run_dir, ev)
-        self.passes.append(ev)
-        cl = continual_metrics(self.passes)
-        self.log(
-            f"evaluation at iteration {ev.get('iteration')} ({ev['eval_episodes']} episodes from "
-            f"{ev.get('distinct_initial_states', 'n/a')} initial states, "
-            f"{ev['time_s']['total']:.0f} s): average success {_fmt(cl['average_success'])}, "
-            f"zero-shot {_fmt(cl['zero_shot_success'])}, per group "
-            + " ".join(f"{t}={_fmt(g['success'])} (worst {_fmt(g['success_worst'])})" for t, g in cl["groups"].items())
-        )
-        return metric_row(cl)
+        row: dict[str, float] = {}
+        while self._finished:
+            ev = self._finished.pop(0)
+            append_pass(self.run_dir, ev)
+            self.passes.append(ev)
+            cl = continual_metrics(self.passes)
+            self.log(
+                f"evaluation at iteration {ev.get('iteration')} ({ev['eval_episodes']} episodes from "
+                f"{ev.get('distinct_initial_states', 'n/a')} initial states, "
+                f"{ev['time_s']['total']:.0f} s): average success {_fmt(cl['average_success'])}, "
+                f"zero-shot {_fmt(cl['zero_shot_success'])}, per group "
+                + " ".join(
+                    f"{t}={_fmt(g['success'])} (worst {_fmt(g['success_worst'])})" for t, g in cl["groups"].items()
+                )
+            )
+            row = metric_row(cl)
+        return row
 
     def stop_reason(self) -> str | None:
         """Why training should stop now under ``eval.stop_at`` (None: go on, or no rule): the groups
