@@ -712,6 +712,11 @@ def test_training_stops_once_a_group_is_held_and_at_the_time_limit(tmp_path, mon
     assert any(line.startswith("stopping at 800 env steps: reach:") for line in logs)
     assert [p["iteration"] for p in lines(tmp_path / "held" / "eval.jsonl")] == [1, 2, 3, 4]  # no extra final pass
     assert (tmp_path / "held" / "checkpoints" / "ckpt-000004").is_dir()
+    resumed = Trainer(cfg, resume=True, log=lambda *_: None)  # met already: stops before any iteration
+    result = resumed.run()
+    resumed.close()
+    assert result["stopped_early"].startswith("reach: greedy success >= 0.9") and result["row"] == {}
+    assert [p["iteration"] for p in lines(tmp_path / "held" / "eval.jsonl")] == [1, 2, 3, 4]
 
     cfg = tiny_cfg(tmp_path / "timed", "runtime.time_limit_minutes=1e-6", "eval.every_iterations=5", *quick)
     trainer = Trainer(cfg, log=lambda *_: None)

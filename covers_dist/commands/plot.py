@@ -232,8 +232,7 @@ def eval_plots(run: Path, episodes: list[dict[str, Any]], colors: dict[str, Any]
             ax.axvline(steps_at[e["episode_index"]] - e["length"], color=colors.get(e["task"], "grey"), ls=":", lw=1)
         prev = e["task"]
     ax.set(xlabel="env steps", ylabel="greedy success (evaluation)", ylim=(-0.05, 1.05),
-           title="greedy success per group (solid: mean over (task, g), dashed: worst (task, g), dotted: oracle "
-                 "policy's mean); lines: group switches")  # fmt: skip
+           title="greedy success: solid mean, dashed worst (task, g), dotted oracle policy; vertical: group switches")  # fmt: skip
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     paths.append(_save(fig, run / "eval_success.png"))
