@@ -198,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
         return run_ari(args, cfg)
     if args.dim < 1 or args.repeats < 1 or args.rollout_steps < 0 or args.obs_frames < 0:
         raise SystemExit("covers-dist bench assign: --dim and --repeats must be >= 1, --rollout-steps and --obs-frames >= 0")
-    steps = args.rollout_steps or cfg.clustering.update_every * cfg.env.max_episode_steps
+    steps = args.rollout_steps or cfg.steps_per_update
     rollout_ms = time_rollout(steps, args.repeats, args.seed)
     head = {"reference": "toy_rollout", "steps": steps, "median_ms": round(rollout_ms, 2)}
     print(json.dumps(head) if args.json else f"reference: {steps} toy env steps take {rollout_ms:.1f} ms (median)")

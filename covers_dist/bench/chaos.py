@@ -440,7 +440,7 @@ def run_iterations(cfg: Config) -> int:
     """Iterations of a run of ``cfg``: each takes ``clustering.update_every`` episodes of
     ``env.max_episode_steps`` env steps (no environment ends an episode early), until
     ``runtime.total_env_steps``."""
-    per_iteration = cfg.clustering.update_every * cfg.env.max_episode_steps
+    per_iteration = cfg.steps_per_update
     return -(-cfg.runtime.total_env_steps // per_iteration)
 
 

@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     if args.nodes < 1 or args.cpus_per_node < 1 or args.iterations < 1 or args.warmup < 0:
         raise SystemExit("covers-dist bench scale: --nodes, --cpus-per-node, --iterations must be >= 1, --warmup >= 0")
     cfg = load_config(args.config, args.overrides)
-    steps_per_iter = cfg.clustering.update_every * cfg.env.max_episode_steps
+    steps_per_iter = cfg.steps_per_update
     out: dict[str, Any] = {"config": args.config, "cpus_per_node": args.cpus_per_node, "steps_per_iter": steps_per_iter}
     for nodes in range(1, args.nodes + 1):
         for mode, extra in (("sequential", ["runtime.pipeline=false"]), ("pipelined", [])):
