@@ -387,8 +387,14 @@ def test_bench_learner_prints_json(capsys):
     assert {row["space_to_depth"] for row in rows if row["kind"] == "net"} == {1, 2}
     stems = [row for row in rows if row["kind"] == "stem"]
     assert {row["net"] for row in stems} == {"equivariant", "cnn"} and all(row["update_speedup"] > 0 for row in stems)
+    assert {row["device"] for row in rows if row["kind"] in ("net", "summary")} == {"cpu"}
     with pytest.raises(SystemExit, match="--space-to-depth takes values among 1, 2, 4"):
         cli_main(["bench", "learner", "--space-to-depth", "3"])
+    with pytest.raises(SystemExit, match="--device 'no-such-device' is not usable here"):
+        cli_main(["bench", "learner", "--device", "no-such-device"])
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit, match="--device 'cuda' is not usable here"):
+            cli_main(["bench", "learner", "--device", "cuda"])
 
 
 def test_precision_resolves_to_native_bf16_only_and_a_bf16_update_keeps_fp32_weights(tmp_path):

@@ -55,6 +55,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--precision", default="auto", choices=["auto", "fp32", "bf16"],
         help="update arithmetic (ppo.precision; default: auto = bf16 only where it is native)",
     )  # fmt: skip
+    p.add_argument(
+        "--device", default="cpu",
+        help="torch device of the networks and the update, e.g. cpu or cuda (default: cpu); the env timer stays on the CPU",
+    )  # fmt: skip
     p.add_argument("--equivariance", action="store_true", help="also print equivariance errors per output")
     p.add_argument("--json", action="store_true", help="print one JSON object per row")
     p.set_defaults(func=run)
@@ -147,6 +151,7 @@ def bench_suite(suite: str, net_cfg: NetworkConfig, args: argparse.Namespace) ->
             dataclasses.replace(net_cfg, cnn_width=float(order)), layout, "cnn", seed=0
         ),
     }
+    nets = {name: model.to(args.device) for name, model in nets.items()}
     ppo_cfg = PPOConfig(epochs=1, minibatch_size=args.minibatch, precision=args.precision)
     worker_batch = RuntimeConfig().envs_per_worker
     batches = sorted({1, worker_batch, 8, 16})
@@ -170,7 +175,7 @@ def bench_suite(suite: str, net_cfg: NetworkConfig, args: argparse.Namespace) ->
     for name, model in nets.items():
         med = {k: statistics.median(v) for k, v in samples[name].items()}
         rows.append(
-            {"kind": "net", "suite": suite, "net": name, "image_size": size, "group": net_cfg.group,
+            {"kind": "net", "suite": suite, "net": name, "image_size": size, "group": net_cfg.group, "device": str(args.device),
              "space_to_depth": net_cfg.space_to_depth, "precision": learners[name].precision,
              "params": model.num_parameters(), "feature_dim": model.feature_dim,
              "update_samples_per_s": round(med["update"], 1),
@@ -191,7 +196,8 @@ def bench_suite(suite: str, net_cfg: NetworkConfig, args: argparse.Namespace) ->
          "env_steps_per_s": None if env_rate is None else round(env_rate, 1), "env_error": env_error,
          "inference_over_env": None if env_rate is None else round(infer_w / env_rate, 2),
          "inference_target_met": None if env_rate is None else infer_w >= env_rate,
-         "repeats": args.repeats, "threads": args.threads}
+         "repeats": args.repeats, "threads": args.threads, "samples": args.samples, "minibatch": args.minibatch,
+         "device": str(args.device)}
     )  # fmt: skip
     return rows
 
@@ -259,7 +265,7 @@ def _print_table(rows: list[dict[str, Any]]) -> None:
         elif row["kind"] == "net":
             infer = "  ".join(f"{k.split('_')[-1]} {v:8,.0f}" for k, v in row.items() if k.startswith("infer_"))
             print(
-                f"{row['suite']:9s} {row['image_size']:3d}px s2d {row['space_to_depth']} {row['net']:21s} params {row['params']:7,d}  "
+                f"{row['suite']:9s} {row['device']:5s} {row['image_size']:3d}px s2d {row['space_to_depth']} {row['net']:21s} params {row['params']:7,d}  "
                 f"update {row['update_samples_per_s']:8,.0f} samples/s  infer obs/s: {infer}"
             )
         else:
@@ -294,6 +300,11 @@ def run(args: argparse.Namespace) -> int:
         stems = []
     if not stems or any(k not in (1, 2, 4) for k in stems):
         raise SystemExit(f"covers-dist bench learner: --space-to-depth takes values among 1, 2, 4, got {args.space_to_depth!r}")
+    try:
+        device = torch.device(args.device)
+        torch.empty(1, device=device)
+    except (RuntimeError, AssertionError) as exc:
+        raise SystemExit(f"covers-dist bench learner: --device {args.device!r} is not usable here: {exc}") from None
     threads = torch.get_num_threads()
     torch.set_num_threads(args.threads)
     try:
