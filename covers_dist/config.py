@@ -62,6 +62,9 @@ GroupName = Literal["D4", "C4", "D2", "C2", "D1", "trivial"]
 #: "buffer"; the Mahalanobis distance is scale-free). Paper (raw trained features): W1 1.0, Euclidean
 #: 0.3-0.7, Mahalanobis 3-7; these values sit in the measured gap between same-group and other-group
 #: distances on the toy stream (docs/clustering.md).
+#: Meta-World's own episode limit (``max_path_length``): an episode's steps times the action repeat.
+METAWORLD_MAX_PATH_LENGTH = 500
+
 DEFAULT_THRESHOLDS: dict[str, float] = {"wasserstein": 1.0, "euclidean": 0.8, "mahalanobis": 10.0}
 
 
@@ -74,7 +77,14 @@ class EnvConfig:
     )
     group: GroupName = _f("D4", "Symmetry group whose elements transform the base tasks.")
     image_size: int = _f(32, "Side of the square top-down image in pixels.", min=8, max=256)
-    max_episode_steps: int = _f(50, "Episode length (time-limit truncation).", min=1)
+    max_episode_steps: int = _f(50, "Episode length in agent steps (time-limit truncation).", min=1)
+    action_repeat: int = _f(
+        1,
+        "Meta-World steps per agent step: each action is applied this many times (rewards summed, "
+        "success if any), one image per agent step. Env steps count agent steps.",
+        min=1,
+        max=8,
+    )
     episodes_per_task: int = _f(20, "Episodes before the stream switches to the next task.", min=1)
     held_out: int = _f(0, "Number of (group, g) pairs held out of training for generalization tests.", min=0)
     render_backend: Literal["auto", "egl", "osmesa", "numpy"] = _f(
@@ -90,6 +100,14 @@ class EnvConfig:
 
         if self.suite == "metaworld" and not 32 <= self.image_size <= 128:
             raise ConfigError(f"env.image_size={self.image_size}: Meta-World images must be 32..128 px")
+        if self.action_repeat > 1 and self.suite != "metaworld":
+            raise ConfigError(f"env.action_repeat={self.action_repeat}: action repeat applies to the metaworld suite only")
+        if self.suite == "metaworld" and self.max_episode_steps * self.action_repeat > METAWORLD_MAX_PATH_LENGTH:
+            raise ConfigError(
+                f"env.max_episode_steps={self.max_episode_steps} x env.action_repeat={self.action_repeat} = "
+                f"{self.max_episode_steps * self.action_repeat} Meta-World steps per episode; Meta-World allows at "
+                f"most {METAWORLD_MAX_PATH_LENGTH}"
+            )
         trainable = len(self.tasks) * (len(get_group(self.group)) - 1)
         if self.held_out > trainable:
             raise ConfigError(

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from covers_dist.config import EnvConfig
+from covers_dist.config import ConfigError, EnvConfig, config_from_dict
 from covers_dist.envs import make_task, suite_layout, task_names, transform_obs
 from covers_dist.envs.metaworld_suite import (
     DISC_RADIUS,
@@ -200,6 +200,50 @@ def test_bad_input_gives_clear_errors():
     with pytest.raises(ValueError, match="4 finite numbers"):
         env.step(np.array([np.nan, 0, 0, 0], dtype=np.float32))
     env.close()
+
+
+@pytest.mark.parametrize("g", ["e", "r3f"])
+def test_action_repeat_is_that_many_meta_world_steps_with_one_image(g):
+    """An agent step with ``action_repeat=2`` is two steps of the same action: rewards summed,
+    success if either was, the state (image and proprio) after the second; the episode ends
+    after ``max_episode_steps`` agent steps."""
+    cfg = EnvConfig(suite="metaworld", tasks=["button-press-topdown-v3"], image_size=32, max_episode_steps=6,
+                    action_repeat=2)  # fmt: skip
+    repeated = make_task(cfg, "button-press-topdown-v3", g)
+    single = MetaWorldTask("button-press-topdown-v3", g, image_size=32, max_episode_steps=12)
+    assert repeated.action_repeat == 2 and repeated.unwrapped_metaworld.max_path_length == 12
+    rng = np.random.default_rng(SEED)
+    obs_r, _ = repeated.reset(seed=SEED)
+    obs_s, _ = single.reset(seed=SEED)
+    for t in range(6):
+        action = rng.uniform(-1, 1, size=4).astype(np.float32)
+        obs_r, reward_r, _, trunc_r, info_r = repeated.step(action)
+        rewards, successes = [], []
+        for _ in range(2):
+            obs_s, reward_s, _, trunc_s, info_s = single.step(action)
+            rewards.append(reward_s)
+            successes.append(info_s["success"])
+        assert reward_r == pytest.approx(sum(rewards), abs=1e-9) and info_r["success"] == max(successes)
+        np.testing.assert_array_equal(obs_r["image"], obs_s["image"])
+        np.testing.assert_array_equal(obs_r["proprio"], obs_s["proprio"])
+        assert trunc_r == (t == 5) and trunc_s == trunc_r
+    with pytest.raises(RuntimeError, match="ended after 6 steps"):
+        repeated.step(np.zeros(4, dtype=np.float32))
+    repeated.close()
+    single.close()
+
+
+def test_action_repeat_bad_values_are_refused_by_name():
+    with pytest.raises(ConfigError, match="env.action_repeat=2: action repeat applies to the metaworld suite only"):
+        EnvConfig(suite="toy", tasks=["reach"], action_repeat=2)
+    with pytest.raises(ConfigError, match="600 Meta-World steps per episode; Meta-World allows at most 500"):
+        EnvConfig(suite="metaworld", tasks=["reach-v3"], image_size=64, max_episode_steps=300, action_repeat=2)
+    with pytest.raises(ConfigError, match="env.action_repeat"):
+        config_from_dict({"env": {"suite": "metaworld", "tasks": ["reach-v3"], "image_size": 64, "action_repeat": 0}})
+    with pytest.raises(ValueError, match="action_repeat must be an integer >= 1"):
+        MetaWorldTask("reach-v3", action_repeat=1.5)
+    with pytest.raises(ValueError, match="Meta-World allows at most 500"):
+        MetaWorldTask("reach-v3", max_episode_steps=200, action_repeat=3)
 
 
 def test_gymnasium_env_checker():

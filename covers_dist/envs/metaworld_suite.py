@@ -34,6 +34,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from ..config import METAWORLD_MAX_PATH_LENGTH
 from ..symmetry import GroupElement
 from . import register_suite
 from .layout import ObsLayout
@@ -139,6 +140,7 @@ class MetaWorldTask(gym.Env):
         camera_shift_angle: float = 0.0,
         render_mode: str | None = None,
         observable: bool = True,
+        action_repeat: int = 1,
     ) -> None:
         if task not in TASKS:
             raise ValueError(f"unknown Meta-World task {task!r}; expected one of {list(TASKS)}")
@@ -146,6 +148,14 @@ class MetaWorldTask(gym.Env):
         steps_ok = isinstance(max_episode_steps, (int, np.integer)) and not isinstance(max_episode_steps, bool)
         if not steps_ok or max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be an integer >= 1, got {max_episode_steps!r}")
+        repeat_ok = isinstance(action_repeat, (int, np.integer)) and not isinstance(action_repeat, bool)
+        if not repeat_ok or action_repeat < 1:
+            raise ValueError(f"action_repeat must be an integer >= 1, got {action_repeat!r}")
+        if max_episode_steps * action_repeat > METAWORLD_MAX_PATH_LENGTH:
+            raise ValueError(
+                f"max_episode_steps x action_repeat = {max_episode_steps * action_repeat} Meta-World steps; "
+                f"Meta-World allows at most {METAWORLD_MAX_PATH_LENGTH} per episode"
+            )
         if render_backend not in RENDER_BACKENDS:
             raise ValueError(f"render_backend must be one of {list(RENDER_BACKENDS)}, got {render_backend!r}")
         if not (isinstance(camera_shift, (int, float)) and math.isfinite(camera_shift) and camera_shift >= 0):
@@ -159,6 +169,7 @@ class MetaWorldTask(gym.Env):
         self.g = _element(g)
         self.g_inv = self.g.inverse()
         self.max_episode_steps = int(max_episode_steps)
+        self.action_repeat = int(action_repeat)
         self.render_mode = render_mode
         self.layout = metaworld_layout(self.image_size)
         self.observation_space = spaces.Dict(
@@ -175,7 +186,7 @@ class MetaWorldTask(gym.Env):
         self._mw.seeded_rand_vec = True
         self._mw._partially_observable = False  # keep the goal in Meta-World's vector (scripted expert)
         self._mw.__dict__.pop("sawyer_observation_space", None)
-        self._mw.max_path_length = self.max_episode_steps
+        self._mw.max_path_length = self.max_episode_steps * self.action_repeat
         model = self._mw.model
         self._goal_z = self.spec_entry.goal_z if observable else None
         if self._goal_z is not None:
@@ -279,12 +290,15 @@ class MetaWorldTask(gym.Env):
         if a.shape != (4,) or not np.all(np.isfinite(a)):
             raise ValueError(f"action must be 4 finite numbers (dx, dy, dz, gripper), got {action!r}")
         base = np.clip(a[self._act_perm] * self._act_sign, -1.0, 1.0)  # g^-1 on (dx, dy)
-        mw_obs, reward, _, _, mw_info = self._mw.step(base)
+        reward, success = 0.0, 0.0
+        for _ in range(self.action_repeat):  # the same action; one image after the last
+            mw_obs, r, _, _, mw_info = self._mw.step(base)
+            reward += float(r)
+            success = max(success, float(mw_info["success"]))
         self._t += 1
         self._mw_obs = mw_obs
         obs = self._observation(mw_obs)
-        info = {"success": float(mw_info["success"])}
-        return obs, float(reward), False, self._t >= self.max_episode_steps, info
+        return obs, reward, False, self._t >= self.max_episode_steps, {"success": success}
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._last_obs is None:
@@ -417,6 +431,7 @@ def make_metaworld_task(
         render_backend=getattr(env_cfg, "render_backend", "auto"),
         camera_shift=float(getattr(env_cfg, "camera_shift", 0.0)),
         camera_shift_angle=float(getattr(env_cfg, "camera_shift_angle", 0.0)),
+        action_repeat=int(getattr(env_cfg, "action_repeat", 1)),
     )
 
 
