@@ -213,8 +213,10 @@ class ClusteringConfig:
     replacement: Literal["fifo", "reservoir"] = _f("reservoir", "How a full buffer admits new observations.")
     initial_frames: int = _f(1, "k: first frames of each episode used for clustering.", min=1)
     update_every: int = _f(8, "Nu: episodes per iteration (rolled out, assigned together, then one PPO update).", min=1)
-    feature_source: Literal["own", "shared"] = _f(
-        "own", "Features from each policy's own encoder, or one frozen shared encoder."
+    feature_source: Literal["own", "shared", "colors"] = _f(
+        "own",
+        "Features from each policy's own encoder, one frozen shared encoder, or a fixed colour "
+        "histogram of the frame (no network; exactly invariant to D4).",
     )
     max_policies: int = _f(64, "Bank size limit; when reached, the nearest policy is recalled.", min=1)
     feature_norm: Literal["buffer", "none", "l2"] = _f(

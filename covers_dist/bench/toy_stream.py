@@ -19,7 +19,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from ..clustering.bank import PolicyBank
-from ..clustering.features import FeatureFn, SharedFeatures
+from ..clustering.features import FeatureFn, SharedFeatures, color_histogram
 from ..envs.toy import TOY_TASKS, ToyTask, toy_layout
 from ..symmetry import D4_ELEMENTS
 
@@ -57,11 +57,13 @@ def encoder_features(kind: str, source: str = "own", image_size: int = 32, seed:
 
     net_cfg = net_cfg or NetworkConfig()
     layout = toy_layout(image_size)
+    if source == "colors":
+        return SharedFeatures(color_histogram)
     if source == "shared":
         model = build_actor_critic(net_cfg, layout, kind=kind, seed=seed).eval()
         return SharedFeatures(model.features_np)
     if source != "own":
-        raise ValueError(f"feature source must be 'own' or 'shared', got {source!r}")
+        raise ValueError(f"feature source must be 'own', 'shared' or 'colors', got {source!r}")
     models: dict[int, Any] = {}
 
     def own(policy_id: int, obs: dict[str, np.ndarray]) -> np.ndarray:

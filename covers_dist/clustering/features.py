@@ -12,6 +12,12 @@ The bank never imports torch: it receives features through a callable.
   with :class:`SharedFeatures` (``fn(obs) -> (n, F)``). ``O`` is encoded once per assignment and
   every distance is measured in the same feature space, so one threshold means the same thing for
   all policies; the features do not improve with training.
+* **Colour histogram** (``feature_source: colors``): no network. Each frame's pixels are
+  quantised to ``levels`` values per channel and counted into ``levels**3`` bins; the feature is
+  the square root of each bin's share of the frame (:func:`color_histogram`). Counting pixels
+  ignores where they are, so the feature is exactly invariant to any rotation or mirror image of
+  the frame (any permutation of its pixels), and it is fixed: it neither trains nor drifts. It
+  tells task groups apart by the colours of their objects, not by their layout.
 
 Normalization (``clustering.feature_norm``), applied to the pair (features of ``O``, features of
 ``B_i``) before a distance:
@@ -35,7 +41,10 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["FeatureFn", "SharedFeatures", "FEATURE_NORMS", "normalize_pair", "check_features"]
+__all__ = [
+    "FeatureFn", "SharedFeatures", "FEATURE_NORMS", "normalize_pair", "check_features", "color_histogram",
+    "COLOR_LEVELS",
+]  # fmt: skip
 
 FeatureFn = Callable[[int, dict[str, np.ndarray]], np.ndarray]
 FEATURE_NORMS: tuple[str, ...] = ("buffer", "none", "l2")
@@ -53,6 +62,29 @@ class SharedFeatures:
 
     def __call__(self, policy_id: int, obs: dict[str, np.ndarray]) -> np.ndarray:
         return self.fn(obs)
+
+
+#: Quantisation levels per colour channel of :func:`color_histogram` (4**3 = 64 bins).
+COLOR_LEVELS = 4
+
+
+def color_histogram(obs: dict[str, np.ndarray], levels: int = COLOR_LEVELS) -> np.ndarray:
+    """``(n, levels**3)`` square-rooted colour shares of the frames ``obs["image"]`` (n, H, W, 3) uint8.
+
+    Exactly invariant to every permutation of a frame's pixels (so to D4 acting on the image).
+    The square root (the Hellinger embedding) lets the few pixels of a small object count
+    beside the table's many."""
+    images = np.asarray(obs["image"])
+    if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
+        raise ValueError(f"color_histogram needs uint8 frames of shape (n, H, W, 3), got {images.dtype} {images.shape}")
+    if not isinstance(levels, int) or not 2 <= levels <= 16:
+        raise ValueError(f"levels must be an integer in 2..16, got {levels!r}")
+    q = images.astype(np.int64) * levels // 256
+    bins = ((q[..., 0] * levels + q[..., 1]) * levels + q[..., 2]).reshape(len(images), -1)
+    n_bins = levels**3
+    offsets = np.arange(len(images))[:, None] * n_bins
+    counts = np.bincount((bins + offsets).ravel(), minlength=len(images) * n_bins).reshape(len(images), n_bins)
+    return np.sqrt(counts / bins.shape[1])
 
 
 def check_features(x: object, n: int, policy_id: int) -> np.ndarray:

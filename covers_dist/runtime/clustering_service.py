@@ -4,8 +4,8 @@ A plain class: in a Ray run it is the named clustering actor (see :mod:`.actors`
 the driver calls it directly, and ``covers-dist serve --run-dir`` loads one read-only.
 
 * It receives only the first-k observations of each episode, never whole trajectories.
-* Features come from each policy's own network (``clustering.feature_source: own``) or from one
-  frozen encoder (``shared``). The driver passes ``{policy id: (version, weights)}`` with every
+* Features come from each policy's own network (``clustering.feature_source: own``), from one
+  frozen encoder (``shared``) or from a fixed colour histogram of the frame (``colors``). The driver passes ``{policy id: (version, weights)}`` with every
   assignment; weights are loaded only when a version changed.
 * Single-policy methods (``equi``, ``cnn``) use a bank capped at one policy, so every batch is
   recalled to policy 0 (and the ARI shows what one policy for every group means).
@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from ..clustering import PolicyBank, load_bank, save_bank
-from ..clustering.features import SharedFeatures
+from ..clustering.features import SharedFeatures, color_histogram
 from ..config import Config, config_to_dict
 from ..envs import suite_layout
 from ..models import build_actor_critic
@@ -70,6 +70,8 @@ class ClusteringService:
 
     # ---- construction ------------------------------------------------------------------------
     def _feature_fn(self) -> Any:
+        if self.cfg.clustering.feature_source == "colors":
+            return SharedFeatures(color_histogram)
         if self.cfg.clustering.feature_source == "shared":
             torch.manual_seed(policy_seed(self.cfg.seed, 0))
             shared = build_actor_critic(self.cfg.network, self.layout).eval()
