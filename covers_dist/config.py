@@ -58,13 +58,13 @@ def _f(default: Any, doc: str, **kw: Any) -> Any:
 Metric = Literal["wasserstein", "euclidean", "mahalanobis"]
 GroupName = Literal["D4", "C4", "D2", "C2", "D1", "trivial"]
 
+#: Meta-World's own episode limit (``max_path_length``): an episode's steps times the action repeat.
+METAWORLD_MAX_PATH_LENGTH = 500
+
 #: Per-metric default thresholds d_eps, in units of the buffer's feature spread (clustering.feature_norm
 #: "buffer"; the Mahalanobis distance is scale-free). Paper (raw trained features): W1 1.0, Euclidean
 #: 0.3-0.7, Mahalanobis 3-7; these values sit in the measured gap between same-group and other-group
 #: distances on the toy stream (docs/clustering.md).
-#: Meta-World's own episode limit (``max_path_length``): an episode's steps times the action repeat.
-METAWORLD_MAX_PATH_LENGTH = 500
-
 DEFAULT_THRESHOLDS: dict[str, float] = {"wasserstein": 1.0, "euclidean": 0.8, "mahalanobis": 10.0}
 
 
