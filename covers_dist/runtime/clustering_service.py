@@ -5,8 +5,9 @@ the driver calls it directly, and ``covers-dist serve --run-dir`` loads one read
 
 * It receives only the first-k observations of each episode, never whole trajectories.
 * Features come from each policy's own network (``clustering.feature_source: own``), from one
-  frozen encoder (``shared``) or from a fixed colour histogram of the frame (``colors``). The driver passes ``{policy id: (version, weights)}`` with every
-  assignment; weights are loaded only when a version changed.
+  frozen encoder (``shared``) or from a fixed colour histogram of the frame (``colors``). The
+  driver passes ``{policy id: (version, weights)}`` with every assignment; weights are loaded only
+  when a version changed.
 * Single-policy methods (``equi``, ``cnn``) use a bank capped at one policy, so every batch is
   recalled to policy 0 (and the ARI shows what one policy for every group means).
 * Crash safety: after each assignment the bank and the service's own counters are written, as one
