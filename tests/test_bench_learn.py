@@ -374,6 +374,25 @@ def test_short_peer_runs_on_equal_terms():
         assert hp["reward"]["scale"] == 0.1 and hp["reward"]["normalize_return"] is True
 
 
+def test_sb3_training_leaves_nothing_in_the_temp_directory(tmp_path, monkeypatch):
+    """SB3's default logger makes an empty ``SB3-<time>`` folder in the temp directory at every
+    ``learn()`` call (``bench learn`` makes one a batch: hundreds of folders a run); the peer's
+    logger writes nothing."""
+    import tempfile
+
+    from covers_dist.bench.sb3_peer import build_sb3_ppo
+
+    cfg = load_config(str(ROOT / "configs" / "smoke.yaml"),
+                      ["env.tasks=[reach]", "env.image_size=48", "runtime.num_workers=1", "runtime.envs_per_worker=1",
+                       "ppo.epochs=1"])  # fmt: skip
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    model = build_sb3_ppo(cfg, ["e", "r"])
+    for _ in range(2):
+        model.learn(total_timesteps=model.n_steps * model.n_envs, reset_num_timesteps=False)
+    assert model.num_timesteps > 0
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("SB3-")] == []
+
+
 # ---- joining separate invocations --------------------------------------------------------------------
 def _result(contenders: dict, **top) -> dict:
     base = {"task": "reach", "group": "D4", "transforms": D4, "threshold": 0.9,

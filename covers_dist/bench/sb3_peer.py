@@ -57,6 +57,7 @@ def build_sb3_ppo(cfg: Config, transforms: Sequence[str]) -> Any:
     """An SB3 PPO model on ``cfg``'s first task, each episode under a random one of ``transforms``."""
     import torch
     from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
     from ..config import config_to_dict
@@ -104,6 +105,9 @@ def build_sb3_ppo(cfg: Config, transforms: Sequence[str]) -> Any:
         verbose=0,
     )
     schedule.model = model
+    # SB3 would otherwise make a new empty SB3-<time> folder in the temp directory at every
+    # learn() call (bench learn makes one a batch); a logger with no outputs writes nothing
+    model.set_logger(Logger(folder=None, output_formats=[]))
     return model
 
 
