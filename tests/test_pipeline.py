@@ -3,6 +3,7 @@ reproducible, resumable mid-pipeline, and equal on Ray and in one process."""
 
 import json
 
+import pytest
 import torch
 
 from covers_dist.runtime.driver import Trainer
@@ -55,7 +56,11 @@ def test_pipelined_run_resumed_from_a_checkpoint_with_an_update_in_flight_equals
     assert _losses(tmp_path / "cut")[2:] == _losses(tmp_path / "full")[2:]
 
 
+@pytest.mark.slow
 def test_ray_pipelined_run_equals_the_serial_pipelined_run(ray_local, tiny_serial_run, tmp_path):
+    """Without faults. The default suite's chaos test (``tests/test_chaos.py``) compares a Ray run
+    of two rollout workers, pipelined, with its serial run too, with every kind of process killed
+    once on the way."""
     serial = tiny_serial_run[:2]  # the same config, 1600 env steps, in this process
     distributed = _run(tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false"))
     assert distributed[0] == serial[0]

@@ -1,9 +1,11 @@
-"""The smoke config end to end on Ray (2 CPUs): one policy per toy group, and learning.
+"""The smoke config end to end: one policy per toy group, and learning.
 
 The default suite runs one round of the three groups and the first iteration of the next round,
-with one rollout worker and one PPO epoch: every group gets its own policy, and the group that comes
-back is recalled (not given a new policy). The full config's run, where the reach group's success rises, is marked slow; that this
-PPO learns a toy task is the default suite's tests/test_learning.py."""
+in one process (``runtime.serial``: the clustering decisions are under test, and a Ray run of the
+same config makes the same ones, tests/test_chaos.py) with one PPO epoch: every group gets its own
+policy, and the group that comes back is recalled (not given a new policy). The full config's run
+on Ray (2 CPUs), where the reach group's success rises, is marked slow; that this PPO learns a toy
+task is the default suite's tests/test_learning.py."""
 
 import json
 
@@ -30,17 +32,17 @@ def _run(tmp_path, *overrides):
     return cfg, records, episodes
 
 
-def test_one_round_gives_each_group_a_policy_and_recalls_a_returning_group(ray_local, tmp_path):
+def test_one_round_gives_each_group_a_policy_and_recalls_a_returning_group(tmp_path):
     base = load_config("configs/smoke.yaml")
     per_iteration = base.clustering.update_every * base.env.max_episode_steps
     one_round = len(base.env.tasks) * base.env.episodes_per_task * base.env.max_episode_steps
-    # the clustering decisions are what is checked, not learning: one epoch, one rollout worker. The
+    # the clustering decisions are what is checked, not learning: one epoch, in one process. The
     # config's own network and image size: with a narrower one (channels [2,4], 8 hidden units, 16 px)
     # the avoid and push groups' initial frames lie at W1 0.9-1.0 of each other's buffers, at the
     # threshold (1.0), and whether they split depended on the seed and the CPU's arithmetic; at these
     # sizes, 7 runs (4 seeds) split all three, other groups at >= 1.3 and the same group <= 0.73
     cfg, records, episodes = _run(tmp_path, f"runtime.total_env_steps={one_round + per_iteration}", "ppo.epochs=1",
-                                  "runtime.learner_ahead=false", "runtime.num_workers=1")  # fmt: skip
+                                  "runtime.serial=true")  # fmt: skip
     assert sorted({e["task"] for e in episodes[: one_round // cfg.env.max_episode_steps]}) == sorted(cfg.env.tasks)
     decisions = [r["decision"] for r in records]
     last = records[-1]
