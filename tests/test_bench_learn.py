@@ -280,6 +280,7 @@ def test_race_is_solved_at_two_evaluations_in_a_row_or_stops_at_the_budget():
     assert [p["env_steps"] for p in res["curve"]] == [0, 1200, 2100, 3000]  # first evaluation past each multiple
     assert [p["held"] for p in res["curve"]] == [0, 0, 1, 2]
     assert res["env_steps_to_threshold"] == 3000 and res["first_met_env_steps"] == 2100
+    assert res["first_at_threshold_env_steps"] == 2100
     assert res["best_min_success"] == 1.0
     assert fast.drains == 4 and fast.env_steps == 3000  # stops training at once
     assert all(p["distinct_initial_states"] == 128 for p in res["curve"])
@@ -288,10 +289,13 @@ def test_race_is_solved_at_two_evaluations_in_a_row_or_stops_at_the_budget():
     lucky = _FakeContender(per_iter=300, success_at=None, lucky_at=1200)
     res = race("fake", lucky, _FakeEvaluator(), 0.9, 1000, 3000, 600.0, log=lambda _: None)
     assert not res["reached"] and res["best_min_success"] == 1.0 and res["stopped"] == "steps"
+    # met once, never held: the point is reported, the run is not solved
+    assert res["first_met_env_steps"] is None and res["first_at_threshold_env_steps"] == 1200
 
     slow = _FakeContender(per_iter=400, success_at=None)
     res = race("fake", slow, _FakeEvaluator(), 0.9, 1000, 1500, 600.0, log=lambda _: None)
     assert not res["reached"] and res["stopped"] == "steps" and res["env_steps_to_threshold"] is None
+    assert res["first_at_threshold_env_steps"] is None
     assert [p["env_steps"] for p in res["curve"]] == [0, 1200, 1600]  # the budget's end is evaluated too
     assert res["best_min_success"] == 0.0 and res["best_mean_success"] == pytest.approx(0.5 / 8)
 

@@ -527,6 +527,8 @@ def race(
         "env_steps_to_threshold": reached["env_steps"] if reached else None,
         "wall_s_to_threshold": reached["train_wall_s"] if reached else None,
         "first_met_env_steps": first_met["env_steps"] if first_met else None,
+        # the first evaluation at the threshold, held or not (an unsolved run may have met it)
+        "first_at_threshold_env_steps": next((p["env_steps"] for p in curve if p["min_success"] >= threshold), None),
         "best_min_success": max(p["min_success"] for p in curve),
         "best_mean_success": max(p["mean_success"] for p in curve),
         "stopped": stopped,
