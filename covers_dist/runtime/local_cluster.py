@@ -140,8 +140,9 @@ class LocalCluster:
         private_utils, common_utils = self._modules
         private_utils.write_ray_address, common_utils.reset_ray_address = self._write, self._reset
 
-    def shutdown(self) -> None:
-        """Disconnect this process (if connected) and stop every node this cluster started."""
+    def shutdown(self, keep_logs: bool = False) -> None:
+        """Disconnect this process (if connected), stop every node this cluster started and remove
+        the cluster's temp dir (with ``keep_logs``, e.g. after a failure, it stays with Ray's logs)."""
         import ray
 
         try:
@@ -152,12 +153,14 @@ class LocalCluster:
             self.cluster.shutdown()
         finally:
             self._restore()
+        if not keep_logs:
+            shutil.rmtree(self.temp_dir, ignore_errors=True)
 
     def __enter__(self) -> "LocalCluster":
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        self.shutdown()
+        self.shutdown(keep_logs=exc[0] is not None)
 
 
 def _serve_node(address: str, num_cpus: int, temp_dir: str) -> None:

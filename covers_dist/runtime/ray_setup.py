@@ -3,23 +3,26 @@
 A local Ray instance binds to the machine's network address unless
 ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` is set before Ray starts; with it, every Ray process
 binds and talks on 127.0.0.1 only. :func:`init_ray` sets it (unless the caller set it
-otherwise), gives the run its own temp dir, and never stops anything it did not start.
+otherwise), gives the run its own temp dir (removed by :func:`shutdown_ray`, Ray's logs with it,
+unless the caller keeps them), and never stops anything it did not start.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from typing import Any
 
 __all__ = ["init_ray", "loopback_only", "ray_temp_dir", "shutdown_ray", "resolve_weights", "check_run_dir_outlives_the_job"]
 
 _STARTED_HERE = False
+_TEMP_DIR: str | None = None  # the temp dir of the instance started here
 
 
 def init_ray(num_cpus: int, address: str | None = None, num_gpus: float | None = None) -> Any:
     """Connect to ``address`` or start a local, loopback-only Ray instance with ``num_cpus``."""
-    global _STARTED_HERE
+    global _STARTED_HERE, _TEMP_DIR
     import ray
 
     if ray.is_initialized():
@@ -31,7 +34,7 @@ def init_ray(num_cpus: int, address: str | None = None, num_gpus: float | None =
         return ray
     # only for an instance we start ourselves: a cluster's nodes must advertise their real address
     loopback_only()
-    tmp = ray_temp_dir()
+    tmp = _TEMP_DIR = ray_temp_dir()
     ray.init(
         num_cpus=num_cpus,
         num_gpus=num_gpus,
@@ -94,14 +97,23 @@ def check_run_dir_outlives_the_job(run_dir: str) -> None:
         )
 
 
-def shutdown_ray() -> None:
-    """Shut down Ray if this process started it (a cluster we joined is left running)."""
-    global _STARTED_HERE
+def shutdown_ray(keep_logs: bool = False) -> str | None:
+    """Shut down Ray if this process started it (a cluster we joined is left running) and remove
+    the instance's temp dir, or, with ``keep_logs`` (e.g. after a failure), leave it and its logs in
+    place. Returns the temp dir if it was kept."""
+    global _STARTED_HERE, _TEMP_DIR
     import ray
 
-    if ray.is_initialized() and _STARTED_HERE:
-        ray.shutdown()
-        _STARTED_HERE = False
+    if not (ray.is_initialized() and _STARTED_HERE):
+        return None
+    ray.shutdown()
+    _STARTED_HERE = False
+    tmp, _TEMP_DIR = _TEMP_DIR, None
+    if tmp and not keep_logs:
+        shutil.rmtree(tmp, ignore_errors=True)
+        return None
+    return tmp
+_TEMP_DIR: str | None = None  # the temp dir of the instance started here
 
 
 def resolve_weights(handle: Any) -> Any:
