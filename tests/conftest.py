@@ -69,6 +69,7 @@ LONGEST_FIRST = (
     "test_clustering_encoders.py",
     "test_pipeline.py",
     "test_learning_metaworld.py",
+    "test_ray_setup.py",
     "test_runtime_serial.py",
     "test_metaworld_suite.py",
     "test_api_fuzz.py",
