@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -31,10 +33,11 @@ def _env() -> dict[str, str]:
     return env
 
 
-def _learn_process(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess:
+def _learn_process(*argv: str, timeout: float = 240, tmpdir: str | None = None) -> subprocess.CompletedProcess:
     """`covers-dist bench learn` in its own process (the peers start and stop Ray themselves)."""
     cmd = [EXE, "bench", "learn", "--config", "configs/smoke.yaml", *argv]
-    return subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=timeout)
+    env = _env() if tmpdir is None else {**_env(), "TMPDIR": tmpdir}
+    return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture
@@ -352,11 +355,19 @@ def test_image_only_task_draws_transforms_from_the_reset_seed():
 
 def test_short_peer_runs_on_equal_terms():
     """RLlib on the project's CNN twin and SB3's PPO, one iteration each: the same PPO settings as
-    covers-dist, read back from the built algorithms, and the same evaluation."""
-    res = _learn_process("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every", "400",
-                 "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=48",
-                 "--set", "ppo.lr_schedule=linear", "--set", "ppo.target_kl=0.02", "--json", timeout=400)  # fmt: skip
+    covers-dist, read back from the built algorithms, and the same evaluation. The Ray instance
+    the RLlib peer starts leaves no temp dir behind."""
+    tmpdir = tempfile.mkdtemp(prefix="cbl-", dir="/tmp" if os.path.isdir("/tmp") else None)  # short: Ray's sockets
+    try:
+        res = _learn_process("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every",
+                     "400", "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=48",
+                     "--set", "ppo.lr_schedule=linear", "--set", "ppo.target_kl=0.02", "--json", timeout=400,
+                     tmpdir=tmpdir)  # fmt: skip
+        left = sorted(p.name for p in Path(tmpdir).glob("covers-ray-*"))
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
     assert res.returncode == 0, res.stderr[-3000:]
+    assert "learn rllib-cnn: ready" in res.stderr and left == []
     result = json.loads(res.stdout.strip().splitlines()[-1])
     for name, framework in (("rllib-cnn", "rllib"), ("sb3", "stable-baselines3")):
         entry = result["contenders"][name]

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from typing import Any
 
 from ..config import load_config
@@ -55,7 +54,7 @@ def _cluster(nodes: int, cpus: int) -> Any:
         for _ in range(nodes - 1):
             cluster.add_node(cpus)
     except BaseException:
-        cluster.shutdown(keep_logs=True)
+        cluster.shutdown()  # its logs kept: an exception is on its way
         raise
     return cluster
 
@@ -67,7 +66,7 @@ def _measure(cfg_path: str, overrides: list[str], nodes: int, cpus: int, iters: 
     try:
         return _covers(cfg_path, overrides, nodes, iters, warmup, address=cluster.address)
     finally:
-        cluster.shutdown(keep_logs=sys.exc_info()[0] is not None)
+        cluster.shutdown()
 
 
 def project(measured: dict[str, float], steps_per_iter: float, workers: int, update_samples_per_s: float,

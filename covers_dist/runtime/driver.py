@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import shutil
 import signal
-import sys
 import tempfile
 import time
 from contextlib import contextmanager
@@ -391,7 +390,7 @@ def train(
             service.stop()
         if trainer is not None:
             trainer.close()
-        if started and (kept := shutdown_ray(keep_logs=sys.exc_info()[0] is not None)):
+        if started and (kept := shutdown_ray()):  # kept after a failure
             log(f"Ray's logs of this run are kept in {kept}")
         for s, h in original.items():
             signal.signal(s, h)

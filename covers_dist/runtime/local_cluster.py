@@ -140,11 +140,15 @@ class LocalCluster:
         private_utils, common_utils = self._modules
         private_utils.write_ray_address, common_utils.reset_ray_address = self._write, self._reset
 
-    def shutdown(self, keep_logs: bool = False) -> None:
+    def shutdown(self, keep_logs: bool | None = None) -> None:
         """Disconnect this process (if connected), stop every node this cluster started and remove
-        the cluster's temp dir (with ``keep_logs``, e.g. after a failure, it stays with Ray's logs)."""
+        the cluster's temp dir (kept with Ray's logs with ``keep_logs``, by default after a failure:
+        see :func:`~covers_dist.runtime.ray_setup.shutdown_ray`)."""
         import ray
 
+        from .ray_setup import failing
+
+        keep = failing() if keep_logs is None else keep_logs
         try:
             if ray.is_initialized():
                 ray.shutdown()
@@ -153,7 +157,7 @@ class LocalCluster:
             self.cluster.shutdown()
         finally:
             self._restore()
-        if not keep_logs:
+        if not keep:
             shutil.rmtree(self.temp_dir, ignore_errors=True)
 
     def __enter__(self) -> "LocalCluster":

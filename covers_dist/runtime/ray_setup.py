@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 import tempfile
 from typing import Any
 
-__all__ = ["init_ray", "loopback_only", "ray_temp_dir", "shutdown_ray", "resolve_weights", "check_run_dir_outlives_the_job"]
+__all__ = ["init_ray", "loopback_only", "ray_temp_dir", "shutdown_ray", "failing", "resolve_weights", "check_run_dir_outlives_the_job"]
 
 _STARTED_HERE = False
 _TEMP_DIR: str | None = None  # the temp dir of the instance started here
@@ -97,10 +98,11 @@ def check_run_dir_outlives_the_job(run_dir: str) -> None:
         )
 
 
-def shutdown_ray(keep_logs: bool = False) -> str | None:
+def shutdown_ray(keep_logs: bool | None = None) -> str | None:
     """Shut down Ray if this process started it (a cluster we joined is left running) and remove
-    the instance's temp dir, or, with ``keep_logs`` (e.g. after a failure), leave it and its logs in
-    place. Returns the temp dir if it was kept."""
+    the instance's temp dir. With ``keep_logs`` the dir stays, with Ray's logs; by default it stays
+    when an exception is on its way (a ``finally`` after a failure), for a post-mortem. Returns the
+    temp dir if it was kept."""
     global _STARTED_HERE, _TEMP_DIR
     import ray
 
@@ -109,11 +111,17 @@ def shutdown_ray(keep_logs: bool = False) -> str | None:
     ray.shutdown()
     _STARTED_HERE = False
     tmp, _TEMP_DIR = _TEMP_DIR, None
+    if keep_logs is None:
+        keep_logs = failing()
     if tmp and not keep_logs:
         shutil.rmtree(tmp, ignore_errors=True)
         return None
     return tmp
-_TEMP_DIR: str | None = None  # the temp dir of the instance started here
+
+
+def failing() -> bool:
+    """Whether an exception is on its way through the caller (called in a ``finally`` block)."""
+    return sys.exc_info()[0] is not None
 
 
 def resolve_weights(handle: Any) -> Any:
