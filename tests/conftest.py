@@ -19,6 +19,20 @@ def ray_local():
     shutdown_ray()
 
 
+@pytest.fixture
+def short_tmpdir():
+    """A fresh directory with a short path (under /tmp where it exists), for a process given it as
+    ``TMPDIR``: Ray's socket paths fit under it, so a Ray instance started there keeps its temp dir
+    inside it instead of falling back to /tmp. Removed afterwards."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    path = tempfile.mkdtemp(prefix="ct-", dir="/tmp" if os.path.isdir("/tmp") else None)
+    yield Path(path)
+    shutil.rmtree(path, ignore_errors=True)
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """Small tensors on 2 shared cores: one intra-op thread is faster and reproducible."""

@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -353,21 +351,16 @@ def test_image_only_task_draws_transforms_from_the_reset_seed():
         ImageOnlyTask({"config": config_to_dict(cfg), "task": "reach", "transforms": []})
 
 
-def test_short_peer_runs_on_equal_terms():
+def test_short_peer_runs_on_equal_terms(short_tmpdir):
     """RLlib on the project's CNN twin and SB3's PPO, one iteration each: the same PPO settings as
     covers-dist, read back from the built algorithms, and the same evaluation. The Ray instance
     the RLlib peer starts leaves no temp dir behind."""
-    tmpdir = tempfile.mkdtemp(prefix="cbl-", dir="/tmp" if os.path.isdir("/tmp") else None)  # short: Ray's sockets
-    try:
-        res = _learn_process("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every",
-                     "400", "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=48",
-                     "--set", "ppo.lr_schedule=linear", "--set", "ppo.target_kl=0.02", "--json", timeout=400,
-                     tmpdir=tmpdir)  # fmt: skip
-        left = sorted(p.name for p in Path(tmpdir).glob("covers-ray-*"))
-    finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)
+    res = _learn_process("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every", "400",
+                 "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=48",
+                 "--set", "ppo.lr_schedule=linear", "--set", "ppo.target_kl=0.02", "--json", timeout=400,
+                 tmpdir=str(short_tmpdir))  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
-    assert "learn rllib-cnn: ready" in res.stderr and left == []
+    assert "learn rllib-cnn: ready" in res.stderr and list(short_tmpdir.glob("covers-ray-*")) == []
     result = json.loads(res.stdout.strip().splitlines()[-1])
     for name, framework in (("rllib-cnn", "rllib"), ("sb3", "stable-baselines3")):
         entry = result["contenders"][name]

@@ -4,10 +4,8 @@ peer test, whose RLlib peer leaves no ``covers-ray-*`` dir behind.)"""
 
 import json
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 # shut down in an ``except`` block, as a ``finally`` does after a failure
@@ -26,15 +24,11 @@ print(json.dumps({"temp": temp, "kept": kept}))
 """
 
 
-def test_after_a_failure_the_instances_temp_dir_stays_with_its_logs():
-    base = tempfile.mkdtemp(prefix="crs-", dir="/tmp" if os.path.isdir("/tmp") else None)  # short: Ray's sockets
-    env = {**os.environ, "TMPDIR": base, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+def test_after_a_failure_the_instances_temp_dir_stays_with_its_logs(short_tmpdir):
+    env = {**os.environ, "TMPDIR": str(short_tmpdir), "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
     env.pop("RAY_ADDRESS", None)
-    try:
-        done = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=300)
-        assert done.returncode == 0, done.stderr[-4000:]
-        out = json.loads(done.stdout.strip().splitlines()[-1])
-        assert out["temp"].startswith(base) and out["kept"] == out["temp"]
-        assert (Path(out["temp"]) / "session_latest" / "logs").is_dir()
-    finally:
-        shutil.rmtree(base, ignore_errors=True)
+    done = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-4000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["temp"].startswith(str(short_tmpdir)) and out["kept"] == out["temp"]
+    assert (Path(out["temp"]) / "session_latest" / "logs").is_dir()
