@@ -239,7 +239,19 @@ def eval_plots(run: Path, episodes: list[dict[str, Any]], colors: dict[str, Any]
     return paths
 
 
+def _steps_label(x: float, _pos: Any = None) -> str:
+    """An env-step tick as 0, 50k, 1.2M: full numbers overlap on a narrow panel."""
+    if abs(x) >= 1e6:
+        return f"{x / 1e6:g}M"
+    return f"{x / 1e3:g}k" if abs(x) >= 1e3 else f"{x:g}"
+
+
 def _save(fig: Any, path: Path) -> Path:
+    from matplotlib.ticker import FuncFormatter
+
+    for ax in fig.axes:
+        if ax.get_xlabel() == "env steps":
+            ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     import matplotlib.pyplot as plt
