@@ -309,7 +309,11 @@ class RuntimeConfig:
         "training (false: each learner starts when its policy appears; no idle learner holds CPUs or GPUs).",
     )
     learner_threads: int = _f(
-        2, "torch intra-op threads per learner (updates run while the workers wait, so they may use the cores).", min=1
+        0,
+        "torch intra-op threads per learner; 0 (auto): runtime.learner_num_cpus rounded up where the learner "
+        "reserves cores, else 1 (it shares the cores with the rollout workers: on 2 cores a second thread made "
+        "the pipelined loop slower, docs/runtime.md).",
+        min=0,
     )
     actor_nice: int = _f(
         10,

@@ -133,3 +133,21 @@ def test_checkpoints_record_the_network_probe_and_loading_checks_it(tmp_path):
     assert probe_mismatch(None, probe, cfg) is None  # an old checkpoint of a net without the stem
     stem = load_config("configs/quickstart.yaml")
     assert "drawn per process" in probe_mismatch(None, probe, stem)
+
+
+def test_learner_threads_default_to_one_unless_the_learner_reserves_cores():
+    """``runtime.learner_threads: 0`` (auto): 1 thread beside the rollout workers, the reserved cores
+    where ``runtime.learner_num_cpus`` gives it some; an explicit count is kept; a negative one is a
+    config error."""
+    from covers_dist.config import ConfigError
+    from covers_dist.runtime.learner import learner_threads
+
+    def threads(*sets):
+        return learner_threads(load_config("configs/smoke.yaml", list(sets)))
+
+    assert threads() == 1
+    assert threads("runtime.learner_num_cpus=2.5") == 3
+    assert threads("runtime.learner_threads=2") == 2
+    assert threads("runtime.learner_threads=2", "runtime.learner_num_cpus=8") == 2
+    with pytest.raises(ConfigError, match="learner_threads"):
+        threads("runtime.learner_threads=-1")

@@ -21,6 +21,7 @@ that is current after every update and outlives both the process and its node.
 from __future__ import annotations
 
 import io
+import math
 from typing import Any
 
 import torch
@@ -46,6 +47,14 @@ def policy_seed(base_seed: int, policy_id: int) -> int:
 def live_state_key(policy_id: int) -> str:
     """Where in the run's storage the learner of ``policy_id`` keeps its live state."""
     return f"{LEARNERS_LIVE}/policy-{policy_id}.pt"
+
+
+def learner_threads(cfg: Config) -> int:
+    """torch threads for a learner's update: ``runtime.learner_threads``, or with 0 (auto) the cores
+    it reserves (``runtime.learner_num_cpus``, rounded up), else 1: a learner without cores of its
+    own updates beside the rollout workers, and more threads only oversubscribe the cores."""
+    rt = cfg.runtime
+    return rt.learner_threads or max(1, math.ceil(rt.learner_num_cpus))
 
 
 class PolicyLearner:
@@ -92,7 +101,7 @@ class PolicyLearner:
         # policy at an older version is used as stored (docs/learning.md, "A batch acted by another policy")
         other = [ep.get("policy_id") is not None and int(ep["policy_id"]) != self.policy_id for ep in flat]
         threads = torch.get_num_threads()
-        torch.set_num_threads(self.cfg.runtime.learner_threads)
+        torch.set_num_threads(learner_threads(self.cfg))
         try:
             stats = self.ppo.update(flat, reevaluate=other)
         finally:
