@@ -483,3 +483,46 @@ def test_merge_names_a_missing_or_corrupt_file(tmp_path, learn):
         res = learn("--merge", str(path))
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
         assert all(w in res.stderr for w in words), res.stderr
+
+
+# ---- several results in one figure --------------------------------------------------------------------
+def test_figure_draws_results_of_several_task_groups_in_one_png(tmp_path, learn):
+    paths = []
+    for i, (task, entry) in enumerate((("reach", _entry(True, 1000, 10.0)), ("push", _entry(False, None, None)),
+                                       ("reach", _entry(False, None, None)))):  # fmt: skip
+        path = tmp_path / f"r{i}.json"
+        path.write_text(json.dumps(_result({"covers": entry}, task=task, seed=i, overrides=[f"seed={i}", "a=1"])))
+        paths.append(str(path))
+    out = tmp_path / "fig" / "groups.png"
+    res = learn("--figure", ",".join(paths), "--plot", str(out))
+    assert res.returncode == 0, res.stderr
+    assert out.stat().st_size > 1000 and "figure written" in res.stderr
+    from covers_dist.bench.learn import _default_labels
+
+    # the labels name what differs between the results, not what they share
+    assert _default_labels([json.loads(open(p).read()) for p in paths]) == ["seed 0 seed=0", "seed 1 seed=1",
+                                                                            "seed 2 seed=2"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        ([], ["--figure", "--plot"]),
+        (["--plot", "x.png", "--labels", "a,b"], ["--labels", "2 labels", "1 result"]),
+        (["--plot", "x.png", "--figure", "missing.json"], ["--figure", "no such file", "missing.json"]),
+    ],
+)
+def test_figure_refuses_bad_arguments_with_one_line(tmp_path, learn, argv, words):
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps(_result({"covers": _entry(True, 1000, 10.0)})))
+    res = learn("--figure", str(good), *[str(tmp_path / a) if a.endswith((".png", ".json")) else a for a in argv])
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert all(w in res.stderr for w in words), res.stderr
+
+
+def test_figure_refuses_a_file_that_is_not_a_result(tmp_path, learn):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"task": "reach", "contenders": {"covers": {"curve": [None]}}, "threshold": 0.9}))
+    res = learn("--figure", str(bad), "--plot", str(tmp_path / "x.png"))
+    assert res.returncode == 2 and "--figure" in res.stderr and "curve point 0" in res.stderr, res.stderr
+    assert not (tmp_path / "x.png").exists()

@@ -98,7 +98,10 @@ HELD_EVALUATIONS = 2
 #: the actions (B, A) to send to the envs.
 ActFn = Callable[[Mapping[str, np.ndarray]], np.ndarray]
 
-__all__ = ["GroupEvaluation", "CONTENDERS", "PEERS", "register", "run", "plot_curves", "ratios", "merge_results"]
+__all__ = [
+    "GroupEvaluation", "CONTENDERS", "PEERS", "register", "run", "plot_curves", "ratios", "merge_results",
+    "results_figure",
+]
 
 
 # ---- the command line --------------------------------------------------------------------------
@@ -136,6 +139,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="train nothing: join the contenders of earlier result.json files (comma-separated) of one "
                         "task group (same task, group, threshold and evaluation) into one result, its ratios and "
                         "curves")  # fmt: skip
+    p.add_argument("--figure", action=CommaList, default=None, metavar="RESULT.json",
+                   help="train nothing: draw the curves of earlier result.json files (comma-separated; any task "
+                        "groups, seeds and settings) into --plot, a panel per task group, one line per result "
+                        "and contender")  # fmt: skip
+    p.add_argument("--labels", action=CommaList, default=None, metavar="LABEL",
+                   help="with --figure: one label per result file (default: its seed and overrides)")
     p.set_defaults(func=run)
 
 
@@ -732,15 +741,15 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _load_result(path: str) -> dict[str, Any]:
+def _load_result(path: str, flag: str = "--merge") -> dict[str, Any]:
     try:
         data = json.loads(Path(path).read_text())
     except FileNotFoundError:
-        _fail(f"--merge: no such file {path}")
+        _fail(f"{flag}: no such file {path}")
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        _fail(f"--merge: cannot read {path} as JSON: {e}")
+        _fail(f"{flag}: cannot read {path} as JSON: {e}")
     if not isinstance(data, dict):
-        _fail(f"--merge: {path} is not a bench learn result (a JSON object)")
+        _fail(f"{flag}: {path} is not a bench learn result (a JSON object)")
     return data
 
 
@@ -770,8 +779,85 @@ def _merge(args: argparse.Namespace) -> int:
     return 0
 
 
+def results_figure(results: Sequence[tuple[str, Mapping[str, Any]]], path: str | Path) -> Path:
+    """Several results in one figure: a panel per task group (in first-seen order), in it one colour
+    per (result, contender), the worst transform solid and the mean dashed against env steps, a
+    star where a run held the threshold. ``results``: ``(label, result)`` pairs. Raises
+    ``ValueError`` naming a result that is not a bench learn result."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
+
+    from ..commands.plot import _steps_label
+
+    tasks: list[str] = []
+    for label, res in results:
+        if not isinstance(res.get("contenders"), Mapping) or "task" not in res or "threshold" not in res:
+            raise ValueError(f"{label}: not a bench learn result (no task, threshold or contenders)")
+        for contender, entry in res["contenders"].items():
+            if isinstance(entry, Mapping) and "error" not in entry:
+                _check_curve(label, contender, entry)
+        tasks += [res["task"]] if res["task"] not in tasks else []
+    fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.6), sharex=True, sharey=True, squeeze=False)
+    colour: dict[str, int] = {}
+    for label, res in results:
+        ax = axes[0][tasks.index(res["task"])]
+        for contender, entry in res["contenders"].items():
+            if not isinstance(entry, Mapping) or "error" in entry:
+                continue
+            name = label if len(res["contenders"]) == 1 else f"{label} {contender}"
+            c = f"C{colour.setdefault(name, len(colour)) % 10}"
+            curve = entry["curve"]
+            xs = [p["env_steps"] for p in curve]
+            ax.plot(xs, [p["min_success"] for p in curve], "-o", color=c, ms=3, label=name)
+            ax.plot(xs, [p["mean_success"] for p in curve], "--", color=c, alpha=0.5)
+            if entry.get("reached"):
+                ax.plot([entry["env_steps_to_threshold"]], [1.03], "*", color=c, ms=10)
+    for ax, task in zip(axes[0], tasks):
+        threshold = next(res["threshold"] for _, res in results if res["task"] == task)
+        ax.axhline(threshold, color="grey", lw=0.8, ls=":")
+        ax.set(title=task, xlabel="env steps")
+        ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    axes[0][0].set_ylabel("greedy success (worst: solid, mean: dashed)")
+    axes[0][0].set_ylim(-0.03, 1.08)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _default_labels(results: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Each result's label in a figure: its seed and the overrides the other results do not share."""
+    sets = [[str(o) for o in r.get("overrides") or []] for r in results]
+    common = set.intersection(*(set(s) for s in sets)) if sets else set()
+    return [" ".join([f"seed {r.get('seed', '?')}", *(o for o in s if o not in common)]) for r, s in zip(results, sets)]
+
+
+def _figure(args: argparse.Namespace) -> int:
+    if not args.plot:
+        _fail("--figure: give --plot PATH.png, where the figure goes")
+    labels = list(args.labels) if args.labels else None
+    if labels is not None and len(labels) != len(args.figure):
+        _fail(f"--labels: {len(labels)} labels for {len(args.figure)} result files")
+    results = [_load_result(path, "--figure") for path in args.figure]
+    pairs = list(zip(labels or _default_labels(results), results))
+    try:
+        _log(f"learn: figure written to {results_figure(pairs, args.plot)}")
+    except ValueError as e:
+        _fail(f"--figure: {e}")
+    return 0
+
+
 # ---- the benchmark ---------------------------------------------------------------------------
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "figure", None):
+        return _figure(args)
     if getattr(args, "merge", None):
         return _merge(args)
     from ..config import load_config
