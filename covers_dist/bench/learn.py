@@ -655,10 +655,17 @@ def plot_curves(result: Mapping[str, Any], path: str | Path) -> Path:
     axes[0].set_ylim(-0.03, 1.03)
     axes[1].legend(loc="lower right", fontsize=8)
     fig.suptitle(f"{result['task']} under {result['group']} ({len(result['transforms'])} transforms)")
+    return _write_figure(fig, path, 110)
+
+
+def _write_figure(fig: Any, path: str | Path, dpi: int) -> Path:
+    """Lay out ``fig``, write it to ``path`` (its folder made if missing), close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
 
@@ -824,12 +831,7 @@ def results_figure(results: Sequence[tuple[str, Mapping[str, Any]]], path: str |
         ax.legend(fontsize=7, loc="lower right")
     axes[0][0].set_ylabel("greedy success (worst: solid, mean: dashed)")
     axes[0][0].set_ylim(-0.03, 1.08)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _write_figure(fig, path, 100)
 
 
 def _default_labels(results: Sequence[Mapping[str, Any]]) -> list[str]:
