@@ -144,7 +144,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "groups, seeds and settings) into --plot, a panel per task group, one line per result "
                         "and contender")  # fmt: skip
     p.add_argument("--labels", action=CommaList, default=None, metavar="LABEL",
-                   help="with --figure: one label per result file (default: its seed and overrides)")
+                   help="with --figure: one label per result file (default: its seed and the overrides the "
+                        "others do not share)")  # fmt: skip
     p.set_defaults(func=run)
 
 
