@@ -656,17 +656,10 @@ def plot_curves(result: Mapping[str, Any], path: str | Path) -> Path:
     axes[0].set_ylim(-0.03, 1.03)
     axes[1].legend(loc="lower right", fontsize=8)
     fig.suptitle(f"{result['task']} under {result['group']} ({len(result['transforms'])} transforms)")
-    return _write_figure(fig, path, 110)
-
-
-def _write_figure(fig: Any, path: str | Path, dpi: int) -> Path:
-    """Lay out ``fig``, write it to ``path`` (its folder made if missing), close it."""
-    import matplotlib.pyplot as plt
-
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
@@ -796,9 +789,8 @@ def results_figure(results: Sequence[tuple[str, Mapping[str, Any]]], path: str |
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import FuncFormatter
 
-    from ..commands.plot import _steps_label
+    from ..commands.plot import _save  # lays out, formats the env-step axes (50k, 1.2M), writes, closes
 
     tasks: list[str] = []
     for label, res in results:
@@ -827,12 +819,13 @@ def results_figure(results: Sequence[tuple[str, Mapping[str, Any]]], path: str |
         threshold = next(res["threshold"] for _, res in results if res["task"] == task)
         ax.axhline(threshold, color="grey", lw=0.8, ls=":")
         ax.set(title=task, xlabel="env steps")
-        ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
     axes[0][0].set_ylabel("greedy success (worst: solid, mean: dashed)")
     axes[0][0].set_ylim(-0.03, 1.08)
-    return _write_figure(fig, path, 100)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return _save(fig, path)
 
 
 def _default_labels(results: Sequence[Mapping[str, Any]]) -> list[str]:
