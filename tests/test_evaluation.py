@@ -790,11 +790,14 @@ def test_compare_puts_methods_side_by_side_and_refuses_unlike_runs(runs, equi_ru
     md = (out / "compare.md").read_text()
     assert "| covers | 0 | 600 |" in md and "| equi | 0 | 600 |" in md and "| 1 | n/a (one policy) |" in md
     assert (out / "compare_success.png").stat().st_size > 10_000
+    # 3 segments of 3 tasks: no group came back, so no re-entry table
+    assert [r["reentry"] for r in data["runs"]] == [None, None] and "Across the gaps" not in md
     # the same run twice, a run without passes, a missing directory: clear errors, nothing written
     for args, match in (
         ([str(on), str(on)], "is given twice"),
         ([str(on), str(off)], r"eval\.jsonl does not exist"),
         ([str(tmp_path / "nope")], "does not exist"),
+        ([str(on), "--reentry-window", "0"], "--reentry-window must be >= 1"),
     ):
         with pytest.raises(SystemExit, match=match):
             main(["compare", *args, "--out", str(tmp_path / "bad")])

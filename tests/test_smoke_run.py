@@ -53,6 +53,15 @@ def test_one_round_gives_each_group_a_policy_and_recalls_a_returning_group(tmp_p
     returning = episodes[-1]["task"]
     first_policy = next(e["assigned_policy"] for e in episodes if e["task"] == returning)
     assert last["policy_id"] == first_policy, (returning, records)
+    # the real log's one re-entry: the returning group's last iteration of round one -> its first of round two
+    from covers_dist.evaluation.reentry import reentry_changes
+
+    w = base.clustering.update_every
+    gaps = reentry_changes(episodes, window=w)
+    assert list(gaps) == [returning] and gaps[returning]["reentries"] == 1
+    first_segment = [e for e in episodes[: one_round // cfg.env.max_episode_steps] if e["task"] == returning]
+    assert gaps[returning]["return_before"] == pytest.approx(np.mean([e["return"] for e in first_segment[-w:]]))
+    assert gaps[returning]["return_after"] == pytest.approx(np.mean([e["return"] for e in episodes[-w:]]))
 
 
 @pytest.mark.slow

@@ -9,7 +9,10 @@ steps, one panel per group and one for the average, one line per run). Runs must
 tasks, symmetry group, episode length and held-out pairs; the first difference is named.
 ``--across-seeds`` compares runs of several seeds (which hold out different pairs: each row's
 held-out column is its own pairs') and adds a table with one row per method, the mean +- standard
-deviation over its seeds. docs/RESULTS.md shows the table for the paper's stream at a CPU scale.
+deviation over its seeds. A second table, from each run's ``episodes.jsonl``, shows what the other
+groups' training did to each group: its training return and success just before a gap in the stream
+and just after it (``--reentry-window`` episodes on either side). docs/RESULTS.md shows the tables for
+the paper's stream at a CPU scale.
 """
 
 from __future__ import annotations
@@ -36,11 +39,29 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="runs of several seeds (their held-out pairs may differ): add mean +- std per method",
     )
+    p.add_argument(
+        "--reentry-window",
+        type=int,
+        default=8,
+        metavar="N",
+        help="training episodes on either side of a gap in the re-entry table (default: 8, one iteration)",
+    )
     p.set_defaults(func=run)
 
 
-def load_runs(run_dirs: Sequence[str | Path]) -> list[Any]:
-    """:class:`~covers_dist.evaluation.compare.RunResults` of each run directory, labelled."""
+def _reentry(run: Path, window: int) -> dict[str, Any] | None:
+    """Re-entry changes of the run's training episodes (None when it logged none)."""
+    from ..evaluation.reentry import reentry_changes
+    from ..runtime.logfiles import read_jsonl_segments, segment_paths
+
+    if not (run / "episodes.jsonl").is_file() and not segment_paths(run, "episodes.jsonl"):
+        return None
+    return reentry_changes(read_jsonl_segments(run, "episodes.jsonl"), window=window) or None
+
+
+def load_runs(run_dirs: Sequence[str | Path], window: int = 8) -> list[Any]:
+    """:class:`~covers_dist.evaluation.compare.RunResults` of each run directory, labelled
+    (``window``: episodes on either side of a gap for the re-entry table)."""
     from ..evaluation import read_passes
     from ..evaluation.compare import RunResults, run_label
     from ..runtime.saved_run import load_saved_run
@@ -64,6 +85,7 @@ def load_runs(run_dirs: Sequence[str | Path]) -> list[Any]:
             max_episode_steps=int(cfg.env.max_episode_steps),
             passes=read_passes(path, missing_ok=False),
             bank=saved.service.metrics(),
+            reentry=_reentry(path, window),
         )
         r.label = run_label(r.method, path.name, [x.label for x in runs])
         runs.append(r)
@@ -103,11 +125,13 @@ def plot_comparison(runs: Sequence[Any], out: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..evaluation.compare import compare_table, comparison_json, methods_table
+    from ..evaluation.compare import compare_table, comparison_json, methods_table, reentry_table
     from ..runtime.checkpoint import CheckpointError
 
     try:
-        runs = load_runs(args.run_dirs)
+        if args.reentry_window < 1:
+            raise ValueError(f"--reentry-window must be >= 1, got {args.reentry_window}")
+        runs = load_runs(args.run_dirs, window=args.reentry_window)
         data = comparison_json(runs, across_seeds=args.across_seeds)
         table = compare_table(data, paper=not args.across_seeds)
         if args.across_seeds:
@@ -138,6 +162,22 @@ def run(args: argparse.Namespace) -> int:
             "",
         ]
     )
+    gaps = reentry_table(data)
+    if gaps is not None:
+        text += "\n".join(
+            [
+                "",
+                "## Across the gaps: each group's training episodes before and after the other groups trained",
+                "",
+                f"Mean training return over the last {args.reentry_window} episodes of a group's segment -> the first "
+                f"{args.reentry_window} of its next one (change +- standard error over the n re-entries), and the "
+                "success the same way; stochastic training episodes, policy chosen by the bank. One network per "
+                "group changes only by noise here; a shared one by what the others' updates did to it.",
+                "",
+                gaps,
+                "",
+            ]
+        )
     (out / "compare.md").write_text(text)
     fig = plot_comparison(runs, out)
     print(json.dumps(data, indent=2) if args.json else text)

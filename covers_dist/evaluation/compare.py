@@ -25,7 +25,17 @@ import numpy as np
 from .metrics import continual_metrics, group_success, pass_summary
 from .report import PAPER_AVERAGE, PAPER_SUCCESS, _f, markdown_table
 
-__all__ = ["RunResults", "aggregate_by_method", "check_comparable", "compare_table", "comparison_json", "methods_table", "run_label", "success_curve"]
+__all__ = [
+    "RunResults",
+    "aggregate_by_method",
+    "check_comparable",
+    "compare_table",
+    "comparison_json",
+    "methods_table",
+    "reentry_table",
+    "run_label",
+    "success_curve",
+]
 
 
 @dataclass
@@ -42,6 +52,8 @@ class RunResults:
     passes: list[dict[str, Any]]
     bank: dict[str, Any]
     label: str = ""
+    #: :func:`~covers_dist.evaluation.reentry.reentry_changes` of its training episodes (None: no log)
+    reentry: dict[str, Any] | None = None
 
     @property
     def held_out(self) -> list[tuple[str, str]]:
@@ -104,6 +116,7 @@ def _row(run: RunResults) -> dict[str, Any]:
         "policies": int(run.bank.get("num_policies", 0)),
         "ari": run.bank.get("ari"),
         "held_out": [list(p) for p in run.held_out],
+        "reentry": run.reentry,
     }
 
 
@@ -222,4 +235,29 @@ def compare_table(data: dict[str, Any], paper: bool = True) -> str:
         )
     if paper and all(t in PAPER_SUCCESS for t in tasks):
         rows.append(_paper_row(tasks, ["COVERS, paper (3 seeds, ~3M steps per group)", "", ""]))
+    return markdown_table(header, rows)
+
+
+def reentry_table(data: dict[str, Any]) -> str | None:
+    """A Markdown table of each run's re-entry changes (:mod:`covers_dist.evaluation.reentry`): per
+    group, the mean training return over the last episodes before a gap -> the first after it, the
+    mean change +- its standard error, and the success before -> after; None when no run has them."""
+    tasks = data["tasks"]
+    if not any(r.get("reentry") for r in data["runs"]):
+        return None
+    header = ["method", "seed", *[PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]]
+    rows = []
+    for r in data["runs"]:
+        cells = []
+        for t in tasks:
+            x = (r.get("reentry") or {}).get(t)
+            if x is None:
+                cells.append("n/a")
+                continue
+            ch = x["return_change"]
+            cells.append(
+                f"{x['return_before']:.0f} -> {x['return_after']:.0f} ({ch['mean']:+.0f} +- {ch['se']:.0f}); "
+                f"success {x['success_before']:.2f} -> {x['success_after']:.2f}; n={x['reentries']}"
+            )
+        rows.append([r["label"], str(r["seed"]), *cells])
     return markdown_table(header, rows)
