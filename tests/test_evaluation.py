@@ -26,7 +26,7 @@ from covers_dist.evaluation import (
     read_passes,
     run_evaluation,
 )
-from covers_dist.evaluation.metrics import group_worst, held_groups
+from covers_dist.evaluation.metrics import group_success, group_worst, held_groups
 from covers_dist.evaluation.protocol import EvalPair, pair_rows, plan_jobs
 from covers_dist.runtime import evaluation as runtime_evaluation
 from covers_dist.runtime.driver import Trainer
@@ -221,6 +221,20 @@ def test_continual_metrics_and_metric_row_keys():
     assert all(isinstance(v, float) for v in r.values())
     with pytest.raises(ValueError, match="no evaluation passes"):
         continual_metrics([])
+
+
+def test_passes_table_gives_mean_over_trainable_and_worst_over_all_pairs_at_every_pass():
+    from covers_dist.evaluation.report import passes_table
+
+    first = {**fake_pass(1, [row("A", "e", "seen", 1.0), row("A", "r1", "held_out", 0.0)], seen("A")), "env_steps": 240_000}
+    later = {
+        **fake_pass(2, [row("A", "e", "seen", 0.5), row("A", "r1", "held_out", 1.0), row("B", "e", "seen", 0.25)], seen("A", "B")),
+        "env_steps": 1_440_000,
+    }
+    md = passes_table([first, later], ["A", "B"])
+    assert md.splitlines()[0] == "| group | 240k | 1.44M |"
+    assert "| A | 1.00/0.00 | 0.50/0.50 |" in md  # the held-out pair counts for the worst, not the mean
+    assert "| B | - | 0.25/0.25 |" in md  # not shown yet at the first pass
 
 
 def test_worst_pair_and_groups_held_at_a_threshold_over_consecutive_passes():
@@ -564,6 +578,12 @@ def test_eval_command_is_read_only_deterministic_and_matches_the_training_pass(r
     assert main(["report", str(run)]) == 0
     report = (run / "report.md").read_text()
     assert "## Per task group" in report and "| reach |" in report
+    # every pass of the run, one column each: mean over the trainable pairs / worst over all
+    every = report.split("## Every pass", 1)[1].split("## Every (task, g)", 1)[0]
+    from covers_dist.evaluation.report import _f
+
+    cells = [f"{_f(group_success(ev, 'reach'))}/{_f(group_worst(ev, 'reach'))}" for ev in read_passes(run)]
+    assert "| reach | " + " | ".join(cells) + " |" in every and "| push |" in every
 
 
 def test_eval_and_report_bad_input_are_clear_errors(runs, tmp_path, capsys):

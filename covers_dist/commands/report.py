@@ -4,7 +4,8 @@ Reads the run's evaluation passes (``eval.jsonl``: from ``eval.every_iterations`
 or from ``covers-dist eval``), its bank (newest valid checkpoint: policies, ARI) and its config,
 and writes the table in the COVERS paper's layout, one row per task group (success on seen and
 held-out transforms, return, policies, forgetting) with the paper's success beside ours, then the
-per-(task, g) grid of the latest pass. ``--reference TASK=RUN_DIR`` (repeatable) adds forward
+per-pass table (each group's mean and worst transform at every pass) and the per-(task, g) grid
+of the latest pass. ``--reference TASK=RUN_DIR`` (repeatable) adds forward
 transfer against a run that trained on that group alone. docs/RESULTS.md explains the page.
 """
 
@@ -38,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def build_report(run_dir: str | Path, references: dict[str, str] | None = None) -> str:
     """The Markdown page for ``run_dir`` (see the module doc)."""
     from ..evaluation import continual_metrics, read_passes
-    from ..evaluation.report import pairs_table, results_table
+    from ..evaluation.report import pairs_table, passes_table, results_table
     from ..runtime.saved_run import load_saved_run
 
     saved = load_saved_run(run_dir, log=lambda m: print(m, file=sys.stderr))
@@ -77,6 +78,12 @@ def build_report(run_dir: str | Path, references: dict[str, str] | None = None) 
     if cl["forward_transfer"]:
         ft = ", ".join(f"{t} {_f(v)}" for t, v in cl["forward_transfer"].items())
         lines += ["", f"Forward transfer against single-group reference runs: {ft}."]
+    lines += [
+        "",
+        "## Every pass: each group's success, mean over its trainable transforms / worst over all of them",
+        "",
+        passes_table(passes, list(cfg.env.tasks)),
+    ]
     lines += ["", "## Every (task, g) at the latest pass", "", pairs_table(last), ""]
     return "\n".join(lines)
 

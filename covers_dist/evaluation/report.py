@@ -11,7 +11,7 @@ from typing import Any, Sequence
 import numpy as np
 
 
-__all__ = ["PAPER_SUCCESS", "PAPER_AVERAGE", "pairs_table", "results_table", "markdown_table"]
+__all__ = ["PAPER_SUCCESS", "PAPER_AVERAGE", "pairs_table", "passes_table", "results_table", "markdown_table"]
 
 #: COVERS paper (CoRL 2023), success rate per task group, mean +- 95% CI over 3 seeds.
 PAPER_SUCCESS: dict[str, tuple[str, float, float]] = {
@@ -48,6 +48,29 @@ def pairs_table(ev: dict[str, Any]) -> str:
         choice = "n/a" if r.get("agnostic_policy") is None else f"{r['agnostic_policy']} ({r.get('agnostic_decision')})"
         oracle = "n/a" if r.get("oracle_policy") is None else str(r["oracle_policy"])
         rows.append([r["task"], r["g"], r["status"], choice, oracle] + [_with_n(r.get("results", {}).get(k)) for k in keys])
+    return markdown_table(header, rows)
+
+
+def _steps(n: Any) -> str:
+    """Env steps as a column head: 240k, 1.44M."""
+    n = float(n or 0)
+    return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.4g}k"
+
+
+def passes_table(passes: Sequence[dict[str, Any]], tasks: Sequence[str]) -> str:
+    """Each group's greedy success at every pass, ``mean/worst``: the mean over its trainable pairs
+    and the lowest over all its pairs (held-out ones included), policy chosen by the bank; ``-``
+    before the stream showed the group. One column per pass, oldest first."""
+    from .metrics import group_success, group_worst
+
+    header = ["group", *[_steps(ev.get("env_steps")) for ev in passes]]
+    rows = []
+    for t in tasks:
+        cells = []
+        for ev in passes:
+            mean, worst = group_success(ev, t), group_worst(ev, t)
+            cells.append("-" if mean is None and worst is None else f"{_f(mean)}/{_f(worst)}")
+        rows.append([PAPER_SUCCESS.get(t, (t,))[0], *cells])
     return markdown_table(header, rows)
 
 
