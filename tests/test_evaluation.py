@@ -810,8 +810,15 @@ def test_compare_puts_methods_side_by_side_and_refuses_unlike_runs(runs, equi_ru
     md = (out / "compare.md").read_text()
     assert "| covers | 0 | 600 |" in md and "| equi | 0 | 600 |" in md and "| 1 | n/a (one policy) |" in md
     assert (out / "compare_success.png").stat().st_size > 10_000
-    # 3 segments of 3 tasks: no group came back, so no re-entry table
+    # 3 segments of 3 tasks: no group came back, so no re-entry table; the critic's fit per group
+    # from the real logs (sequential runs: each row reports its own batch's update)
     assert [r["reentry"] for r in data["runs"]] == [None, None] and "Across the gaps" not in md
+    from covers_dist.evaluation.reentry import value_fit
+
+    for r, run_dir in zip(data["runs"], (on, equi)):
+        assert r["value_fit"] == value_fit(lines(run_dir / "metrics.jsonl"), lines(run_dir / "episodes.jsonl"), lag=0)
+        assert sum(f["updates"] for f in r["value_fit"].values()) >= 2
+    assert "## The critic's fit per group" in md
     # the same run twice, a run without passes, a missing directory: clear errors, nothing written
     for args, match in (
         ([str(on), str(on)], "is given twice"),

@@ -73,3 +73,36 @@ def test_the_table_names_each_group_and_says_n_a_where_a_run_has_none():
     assert "| covers | 0 | 15 -> 35 (+20 +- nan); success 0.50 -> 1.00; n=1 | n/a |" in md
     assert "| equi | 0 | n/a | n/a |" in md
     assert reentry_table({"tasks": data["tasks"], "runs": [data["runs"][1]]}) is None
+
+
+def test_value_fit_attributes_each_update_to_its_batch_group_by_hand():
+    from covers_dist.evaluation.reentry import value_fit
+
+    # iterations 1-4: batches of a, a, b, a+b (mixed: left out)
+    episodes = [
+        {"iteration": 1, "task": "a"},
+        {"iteration": 2, "task": "a"},
+        {"iteration": 3, "task": "b"},
+        {"iteration": 4, "task": "a"},
+        {"iteration": 4, "task": "b"},
+    ]
+    metrics = [
+        {"iteration": 1, "ppo/explained_variance": 0.1},
+        {"iteration": 2, "ppo/explained_variance": 0.2},
+        {"iteration": 3, "ppo/explained_variance": 0.3},
+        {"iteration": 4, "ppo/explained_variance": 0.4},
+        {"iteration": 4, "ppo/explained_variance": 0.5},  # written again after a resume: this one counts
+        {"iteration": 5, "ppo/explained_variance": float("nan")},  # no statistics worth counting
+    ]
+    # sequential: each row reports its own batch
+    assert value_fit(metrics, episodes, lag=0) == {
+        "a": {"updates": 2, "explained_variance": pytest.approx(0.15)},
+        "b": {"updates": 1, "explained_variance": pytest.approx(0.3)},
+    }
+    # pipelined: each row reports the previous iteration's batch (row 2 -> a, 3 -> a, 4 -> b, 5 -> mixed)
+    assert value_fit(metrics, episodes, lag=1) == {
+        "a": {"updates": 2, "explained_variance": pytest.approx(0.25)},
+        "b": {"updates": 1, "explained_variance": pytest.approx(0.5)},
+    }
+    with pytest.raises(ValueError, match="lag must be 0"):
+        value_fit(metrics, episodes, lag=2)

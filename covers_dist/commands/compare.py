@@ -49,14 +49,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _reentry(run: Path, window: int) -> dict[str, Any] | None:
-    """Re-entry changes of the run's training episodes (None when it logged none)."""
-    from ..evaluation.reentry import reentry_changes
+def _stream_stats(run: Path, window: int, lag: int) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """The run's re-entry changes and value fit per group, from its logs (None where it has none)."""
+    from ..evaluation.reentry import reentry_changes, value_fit
     from ..runtime.logfiles import read_jsonl_segments, segment_paths
 
-    if not (run / "episodes.jsonl").is_file() and not segment_paths(run, "episodes.jsonl"):
-        return None
-    return reentry_changes(read_jsonl_segments(run, "episodes.jsonl"), window=window) or None
+    def logged(name: str) -> bool:
+        return (run / name).is_file() or bool(segment_paths(run, name))
+
+    if not logged("episodes.jsonl"):
+        return None, None
+    gaps = reentry_changes(read_jsonl_segments(run, "episodes.jsonl"), window=window) or None
+    fit = None
+    if logged("metrics.jsonl"):
+        fit = value_fit(read_jsonl_segments(run, "metrics.jsonl"), read_jsonl_segments(run, "episodes.jsonl"), lag) or None
+    return gaps, fit
 
 
 def load_runs(run_dirs: Sequence[str | Path], window: int = 8) -> list[Any]:
@@ -85,8 +92,8 @@ def load_runs(run_dirs: Sequence[str | Path], window: int = 8) -> list[Any]:
             max_episode_steps=int(cfg.env.max_episode_steps),
             passes=read_passes(path, missing_ok=False),
             bank=saved.service.metrics(),
-            reentry=_reentry(path, window),
         )
+        r.reentry, r.value_fit = _stream_stats(path, window, lag=1 if cfg.runtime.pipeline else 0)
         r.label = run_label(r.method, path.name, [x.label for x in runs])
         runs.append(r)
     return runs
@@ -125,7 +132,7 @@ def plot_comparison(runs: Sequence[Any], out: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..evaluation.compare import compare_table, comparison_json, methods_table, reentry_table
+    from ..evaluation.compare import compare_table, comparison_json, methods_table, reentry_table, value_fit_table
     from ..runtime.checkpoint import CheckpointError
 
     try:
@@ -163,6 +170,20 @@ def run(args: argparse.Namespace) -> int:
         ]
     )
     gaps = reentry_table(data)
+    fits = value_fit_table(data)
+    if fits is not None:
+        text += "\n".join(
+            [
+                "",
+                "## The critic's fit per group",
+                "",
+                "Median explained variance of the value function over the PPO updates of each group's batches "
+                "(n updates); one network per group fits one group's returns, a shared one all of them.",
+                "",
+                fits,
+                "",
+            ]
+        )
     if gaps is not None:
         text += "\n".join(
             [

@@ -35,6 +35,7 @@ __all__ = [
     "reentry_table",
     "run_label",
     "success_curve",
+    "value_fit_table",
 ]
 
 
@@ -54,6 +55,8 @@ class RunResults:
     label: str = ""
     #: :func:`~covers_dist.evaluation.reentry.reentry_changes` of its training episodes (None: no log)
     reentry: dict[str, Any] | None = None
+    #: :func:`~covers_dist.evaluation.reentry.value_fit` of its updates (None: no log)
+    value_fit: dict[str, Any] | None = None
 
     @property
     def held_out(self) -> list[tuple[str, str]]:
@@ -117,6 +120,7 @@ def _row(run: RunResults) -> dict[str, Any]:
         "ari": run.bank.get("ari"),
         "held_out": [list(p) for p in run.held_out],
         "reentry": run.reentry,
+        "value_fit": run.value_fit,
     }
 
 
@@ -261,3 +265,18 @@ def reentry_table(data: dict[str, Any]) -> str | None:
             )
         rows.append([r["label"], str(r["seed"]), *cells])
     return markdown_table(header, rows)
+
+
+def value_fit_table(data: dict[str, Any]) -> str | None:
+    """A Markdown table of each run's value fit per group (``0.93 (n=156)``); None when no run has it."""
+    tasks = data["tasks"]
+    if not any(r.get("value_fit") for r in data["runs"]):
+        return None
+    rows = []
+    for r in data["runs"]:
+        fit = r.get("value_fit") or {}
+        cells = [
+            "n/a" if fit.get(t) is None else f"{fit[t]['explained_variance']:.2f} (n={fit[t]['updates']})" for t in tasks
+        ]
+        rows.append([r["label"], str(r["seed"]), *cells])
+    return markdown_table(["method", "seed", *[PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]], rows)

@@ -15,7 +15,14 @@ This module measures that change from a run's ``episodes.jsonl``, with no evalua
 
 The episodes are the stochastic training episodes (not greedy evaluation ones), acted by the policy
 the bank chose for them; a negative mean change beyond a few standard errors is forgetting within
-the stream. Plain Python + numpy.
+the stream.
+
+:func:`value_fit` reads the PPO updates' statistics in ``metrics.jsonl`` per group: an iteration's
+row carries the statistics of the update of its own batch, or with ``runtime.pipeline`` of the
+previous iteration's batch (``lag`` 1; docs/runtime.md, "Pipelining"), and a batch belongs to a
+group when all its episodes are that group's. The median explained variance of the value function
+over a group's updates says how well the critic fits that group's returns: a shared network's one
+critic must fit every group at once. Plain Python + numpy.
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-__all__ = ["reentry_changes", "segments"]
+__all__ = ["reentry_changes", "segments", "value_fit"]
 
 
 def segments(episodes: Iterable[dict[str, Any]]) -> list[tuple[str, list[dict[str, Any]]]]:
@@ -86,3 +93,26 @@ def reentry_changes(episodes: Iterable[dict[str, Any]], window: int = 8) -> dict
             "success_change": _stat(a[:, 3] - a[:, 2]),
         }
     return out
+
+
+def value_fit(
+    metrics: Iterable[dict[str, Any]], episodes: Iterable[dict[str, Any]], lag: int = 1
+) -> dict[str, dict[str, Any]]:
+    """Per task: ``{"updates", "explained_variance"}``, the number of updates of batches of that task
+    alone and the median of their ``ppo/explained_variance``. ``lag``: iterations between a batch and
+    the row that reports its update (1 pipelined, 0 sequential). Rows repeated by a resume: the last."""
+    if lag not in (0, 1):
+        raise ValueError(f"lag must be 0 (sequential) or 1 (pipelined), got {lag}")
+    tasks: dict[int, set[str]] = {}
+    for e in episodes:
+        if "iteration" in e:
+            tasks.setdefault(int(e["iteration"]), set()).add(e["task"])
+    rows = {int(m["iteration"]): m for m in metrics if "iteration" in m}
+    values: dict[str, list[float]] = {}
+    for it in sorted(rows):
+        ev = rows[it].get("ppo/explained_variance")
+        batch = tasks.get(it - lag, set())
+        if ev is None or not np.isfinite(ev) or len(batch) != 1:
+            continue
+        values.setdefault(next(iter(batch)), []).append(float(ev))
+    return {t: {"updates": len(v), "explained_variance": float(np.median(v))} for t, v in values.items()}
