@@ -9,10 +9,12 @@ steps, one panel per group and one for the average, one line per run). Runs must
 tasks, symmetry group, episode length and held-out pairs; the first difference is named.
 ``--across-seeds`` compares runs of several seeds (which hold out different pairs: each row's
 held-out column is its own pairs') and adds a table with one row per method, the mean +- standard
-deviation over its seeds. A second table, from each run's ``episodes.jsonl``, shows what the other
-groups' training did to each group: its training return and success just before a gap in the stream
-and just after it (``--reentry-window`` episodes on either side). docs/RESULTS.md shows the tables for
-the paper's stream at a CPU scale.
+deviation over its seeds. Two more tables come from each run's logs: the critic's fit per group
+(median explained variance of the value function over the updates of that group's batches, from
+``metrics.jsonl``) and what the other groups' training did to each group (its training return and
+success just before a gap in the stream and just after it, ``--reentry-window`` episodes on either
+side, from ``episodes.jsonl``). docs/RESULTS.md shows the tables for the paper's stream at a CPU
+scale.
 """
 
 from __future__ import annotations
