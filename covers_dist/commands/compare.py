@@ -54,17 +54,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _stream_stats(run: Path, window: int, lag: int) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
     """The run's re-entry changes and value fit per group, from its logs (None where it has none)."""
     from ..evaluation.reentry import reentry_changes, value_fit
-    from ..runtime.logfiles import read_jsonl_segments, segment_paths
+    from ..runtime.logfiles import has_log, read_jsonl_segments
 
-    def logged(name: str) -> bool:
-        return (run / name).is_file() or bool(segment_paths(run, name))
-
-    if not logged("episodes.jsonl"):
+    if not has_log(run, "episodes.jsonl"):
         return None, None
-    gaps = reentry_changes(read_jsonl_segments(run, "episodes.jsonl"), window=window) or None
+    episodes = list(read_jsonl_segments(run, "episodes.jsonl"))
+    gaps = reentry_changes(episodes, window=window) or None
     fit = None
-    if logged("metrics.jsonl"):
-        fit = value_fit(read_jsonl_segments(run, "metrics.jsonl"), read_jsonl_segments(run, "episodes.jsonl"), lag) or None
+    if has_log(run, "metrics.jsonl"):
+        fit = value_fit(read_jsonl_segments(run, "metrics.jsonl"), episodes, lag) or None
     return gaps, fit
 
 
@@ -110,7 +108,7 @@ def plot_comparison(runs: Sequence[Any], out: Path) -> Path:
     import numpy as np
 
     from ..evaluation.compare import success_curve
-    from ..evaluation.report import PAPER_SUCCESS
+    from ..evaluation.report import group_name
 
     tasks = list(runs[0].tasks)
     panels = [*tasks, None]
@@ -121,7 +119,7 @@ def plot_comparison(runs: Sequence[Any], out: Path) -> Path:
         for r in runs:
             steps, values = success_curve(r, task)
             ax.plot(steps, [np.nan if v is None else v for v in values], "o-", ms=3, label=r.label)
-        name = "average over groups seen" if task is None else PAPER_SUCCESS.get(task, (task,))[0]
+        name = "average over groups seen" if task is None else group_name(task)
         ax.set(title=name, xlabel="env steps", ylabel="greedy success", ylim=(-0.05, 1.05))
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(panels) :]:
@@ -171,36 +169,25 @@ def run(args: argparse.Namespace) -> int:
             "",
         ]
     )
-    gaps = reentry_table(data)
-    fits = value_fit_table(data)
-    if fits is not None:
-        text += "\n".join(
-            [
-                "",
-                "## The critic's fit per group",
-                "",
-                "Median explained variance of the value function over the PPO updates of each group's batches "
-                "(n updates); one network per group fits one group's returns, a shared one all of them.",
-                "",
-                fits,
-                "",
-            ]
-        )
-    if gaps is not None:
-        text += "\n".join(
-            [
-                "",
-                "## Across the gaps: each group's training episodes before and after the other groups trained",
-                "",
-                f"Mean training return over the last {args.reentry_window} episodes of a group's segment -> the first "
-                f"{args.reentry_window} of its next one (change +- standard error over the n re-entries), and the "
-                "success the same way; stochastic training episodes, policy chosen by the bank. One network per "
-                "group changes only by noise here; a shared one by what the others' updates did to it.",
-                "",
-                gaps,
-                "",
-            ]
-        )
+    w = args.reentry_window
+    for title, what, table in (
+        (
+            "The critic's fit per group",
+            "Median explained variance of the value function over the PPO updates of each group's batches "
+            "(n updates); one network per group fits one group's returns, a shared one all of them.",
+            value_fit_table(data),
+        ),
+        (
+            "Across the gaps: each group's training episodes before and after the other groups trained",
+            f"Mean training return over the last {w} episodes of a group's segment -> the first {w} of its next one "
+            "(change +- standard error over the n re-entries), and the success the same way; stochastic training "
+            "episodes, policy chosen by the bank. One network per group changes only by noise here; a shared one by "
+            "what the others' updates did to it.",
+            reentry_table(data),
+        ),
+    ):
+        if table is not None:
+            text += "\n".join(["", f"## {title}", "", what, "", table, ""])
     (out / "compare.md").write_text(text)
     fig = plot_comparison(runs, out)
     print(json.dumps(data, indent=2) if args.json else text)

@@ -37,9 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _read_jsonl(run: Path, name: str) -> list[dict[str, Any]]:
     """Rows of log ``name`` of the run: its rotated segments, then the live file."""
-    from ..runtime.logfiles import read_jsonl_segments, segment_paths
+    from ..runtime.logfiles import has_log, read_jsonl_segments
 
-    if not (run / name).is_file() and not segment_paths(run, name):
+    if not has_log(run, name):
         raise SystemExit(f"covers-dist plot: {run / name} is missing (is this a run directory?)")
     try:
         return list(read_jsonl_segments(run, name))

@@ -23,7 +23,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .metrics import continual_metrics, group_success, pass_summary
-from .report import PAPER_AVERAGE, PAPER_SUCCESS, _f, markdown_table
+from .report import PAPER_AVERAGE, PAPER_SUCCESS, _f, group_name, markdown_table
 
 __all__ = [
     "RunResults",
@@ -202,7 +202,7 @@ def _paper_row(tasks: Sequence[str], lead: Sequence[str]) -> list[Any]:
 
 
 def _header(tasks: Sequence[str], lead: Sequence[str]) -> list[str]:
-    names = [PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]
+    names = [group_name(t) for t in tasks]
     return [*lead, *names, "average", "held-out (zero-shot)", "forgetting", "policies", "ARI"]
 
 
@@ -249,7 +249,7 @@ def reentry_table(data: dict[str, Any]) -> str | None:
     tasks = data["tasks"]
     if not any(r.get("reentry") for r in data["runs"]):
         return None
-    header = ["method", "seed", *[PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]]
+    header = ["method", "seed", *[group_name(t) for t in tasks]]
     rows = []
     for r in data["runs"]:
         cells = []
@@ -279,4 +279,4 @@ def value_fit_table(data: dict[str, Any]) -> str | None:
             "n/a" if fit.get(t) is None else f"{fit[t]['explained_variance']:.2f} (n={fit[t]['updates']})" for t in tasks
         ]
         rows.append([r["label"], str(r["seed"]), *cells])
-    return markdown_table(["method", "seed", *[PAPER_SUCCESS.get(t, (t,))[0] for t in tasks]], rows)
+    return markdown_table(["method", "seed", *[group_name(t) for t in tasks]], rows)

@@ -11,7 +11,7 @@ from typing import Any, Sequence
 import numpy as np
 
 
-__all__ = ["PAPER_SUCCESS", "PAPER_AVERAGE", "pairs_table", "passes_table", "results_table", "markdown_table"]
+__all__ = ["PAPER_SUCCESS", "PAPER_AVERAGE", "group_name", "pairs_table", "passes_table", "results_table", "markdown_table"]
 
 #: COVERS paper (CoRL 2023), success rate per task group, mean +- 95% CI over 3 seeds.
 PAPER_SUCCESS: dict[str, tuple[str, float, float]] = {
@@ -21,6 +21,11 @@ PAPER_SUCCESS: dict[str, tuple[str, float, float]] = {
     "reach-v3": ("Goal Reach", 0.95, 0.04),
 }
 PAPER_AVERAGE: tuple[float, float] = (0.94, 0.02)
+
+
+def group_name(task: str) -> str:
+    """The paper's name of a task group (``Goal Reach`` for ``reach-v3``), else the task itself."""
+    return PAPER_SUCCESS.get(task, (task,))[0]
 
 
 def _f(v: Any, digits: int = 2) -> str:
@@ -70,7 +75,7 @@ def passes_table(passes: Sequence[dict[str, Any]], tasks: Sequence[str]) -> str:
         for ev in passes:
             mean, worst = group_success(ev, t), group_worst(ev, t)
             cells.append("-" if mean is None and worst is None else f"{_f(mean)}/{_f(worst)}")
-        rows.append([PAPER_SUCCESS.get(t, (t,))[0], *cells])
+        rows.append([group_name(t), *cells])
     return markdown_table(header, rows)
 
 

@@ -90,6 +90,11 @@ def read_jsonl_file(path: str | Path, strict: bool = True, live: bool = True) ->
                 raise ValueError(f"{path}:{n} is not a JSON object")
 
 
+def has_log(run_dir: str | Path, name: str) -> bool:
+    """Whether ``run_dir`` holds log ``name``: its live file or a kept segment."""
+    return (Path(run_dir) / name).is_file() or bool(segment_paths(run_dir, name))
+
+
 def read_jsonl_segments(run_dir: str | Path, name: str, strict: bool = True) -> Iterator[dict[str, Any]]:
     """Rows of log ``name`` in ``run_dir``: the kept segments oldest first, then the live file
     (see :func:`read_jsonl_file` for ``strict``). No live file and no segment: nothing."""
