@@ -22,9 +22,25 @@ def _run(cfg, resume=False):
     return result
 
 
+def _rows(run_dir, name="metrics.jsonl"):
+    return [json.loads(line) for line in (run_dir / name).read_text().splitlines()]
+
+
 def _losses(run_dir):
-    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    return [r.get("ppo/policy_loss") for r in rows]
+    return [r.get("ppo/policy_loss") for r in _rows(run_dir)]
+
+
+def _batches(run_dir):
+    """Per metrics row: (its iteration, the iteration and policy of the batch its update trained on)."""
+    return [(r["iteration"], r.get("ppo/batch_iteration"), r.get("ppo/batch_policy")) for r in _rows(run_dir)]
+
+
+def _policy_per_iteration(run_dir):
+    acted = {}
+    for e in _rows(run_dir, "episodes.jsonl"):
+        acted.setdefault(e["iteration"], set()).add(e["assigned_policy"])
+    assert all(len(p) == 1 for p in acted.values())  # one policy trains on an iteration's batch
+    return {it: p.pop() for it, p in acted.items()}
 
 
 def _same_weights(a, b):
@@ -43,6 +59,12 @@ def test_pipelined_rows_report_the_previous_update_and_differ_from_sequential(ti
     # the first update is the same computation (same data, same weights); later ones see lagged samples
     assert piped[1] == seq[0]
     assert piped[2:] != seq[1:-1]
+    # each row names the batch whose update it reports: the previous iteration's when pipelined
+    for run_dir, lag in ((piped_dir, 1), (tmp_path / "s", 0)):
+        policies = _policy_per_iteration(run_dir)
+        rows = [b for b in _batches(run_dir) if b[1] is not None]
+        assert [it - lag for it, _, _ in rows] == [batch for _, batch, _ in rows]
+        assert [policies[batch] for _, batch, _ in rows] == [pid for _, _, pid in rows]
 
 
 def test_pipelined_run_resumed_from_a_checkpoint_with_an_update_in_flight_equals_the_uninterrupted_run(tmp_path):
@@ -54,6 +76,7 @@ def test_pipelined_run_resumed_from_a_checkpoint_with_an_update_in_flight_equals
     assert resumed[0] == full[0]
     _same_weights(resumed[1], full[1])
     assert _losses(tmp_path / "cut")[2:] == _losses(tmp_path / "full")[2:]
+    assert _batches(tmp_path / "cut")[2:] == _batches(tmp_path / "full")[2:]  # the restored update names its batch
 
 
 @pytest.mark.slow

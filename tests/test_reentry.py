@@ -104,5 +104,11 @@ def test_value_fit_attributes_each_update_to_its_batch_group_by_hand():
         "a": {"updates": 2, "explained_variance": pytest.approx(0.25)},
         "b": {"updates": 1, "explained_variance": pytest.approx(0.5)},
     }
+    # rows that name their batch are read by that name, whatever the lag
+    named = [{**m, "ppo/batch_iteration": b} for m, b in zip(metrics, (1, 1, 3, 2, 3, 4))]
+    assert value_fit(named, episodes, lag=1) == value_fit(named, episodes, lag=0) == {
+        "a": {"updates": 2, "explained_variance": pytest.approx(0.15)},
+        "b": {"updates": 2, "explained_variance": pytest.approx(0.4)},
+    }
     with pytest.raises(ValueError, match="lag must be 0"):
         value_fit(metrics, episodes, lag=2)

@@ -19,8 +19,9 @@ the stream.
 
 :func:`value_fit` reads the PPO updates' statistics in ``metrics.jsonl`` per group: an iteration's
 row carries the statistics of the update of its own batch, or with ``runtime.pipeline`` of the
-previous iteration's batch (``lag`` 1; docs/runtime.md, "Pipelining"), and a batch belongs to a
-group when all its episodes are that group's. The median explained variance of the value function
+previous iteration's batch (docs/runtime.md, "Pipelining"); the row names that batch
+(``ppo/batch_iteration``; older logs: ``lag``), and a batch belongs to a group when all its
+episodes are that group's. The median explained variance of the value function
 over a group's updates says how well the critic fits that group's returns: a shared network's one
 critic must fit every group at once. Plain Python + numpy.
 """
@@ -99,8 +100,10 @@ def value_fit(
     metrics: Iterable[dict[str, Any]], episodes: Iterable[dict[str, Any]], lag: int = 1
 ) -> dict[str, dict[str, Any]]:
     """Per task: ``{"updates", "explained_variance"}``, the number of updates of batches of that task
-    alone and the median of their ``ppo/explained_variance``. ``lag``: iterations between a batch and
-    the row that reports its update (1 pipelined, 0 sequential). Rows repeated by a resume: the last."""
+    alone and the median of their ``ppo/explained_variance``. A row names the batch its update
+    trained on (``ppo/batch_iteration``); logs written before rows did are read with ``lag``, the
+    iterations between a batch and the row that reports its update (1 pipelined, 0 sequential).
+    Rows repeated by a resume: the last."""
     if lag not in (0, 1):
         raise ValueError(f"lag must be 0 (sequential) or 1 (pipelined), got {lag}")
     tasks: dict[int, set[str]] = {}
@@ -111,7 +114,7 @@ def value_fit(
     values: dict[str, list[float]] = {}
     for it in sorted(rows):
         ev = rows[it].get("ppo/explained_variance")
-        batch = tasks.get(it - lag, set())
+        batch = tasks.get(int(rows[it].get("ppo/batch_iteration", it - lag)), set())
         if ev is None or not np.isfinite(ev) or len(batch) != 1:
             continue
         values.setdefault(next(iter(batch)), []).append(float(ev))

@@ -123,7 +123,7 @@ class Trainer:
                 record = self._assign(_stacked(firsts), summaries)
         policy = int(record["policy_id"])
         with self._phase("update_submit"):  # the serial backend runs the update here
-            self.weights.submit_update(policy, episodes)
+            self.weights.submit_update(policy, episodes, self.iteration + 1)  # this iteration's row number
         if not self.cfg.runtime.pipeline:
             with self._phase("update_wait"):
                 stats = self.weights.finish_update()

@@ -36,6 +36,7 @@ class PolicyWeights:
         self.handles: dict[int, Any] = {}  # policy -> object-store handle of those weights
         self.learner_versions: dict[int, int] = {}  # each learner's version once its submitted updates are done
         self.pending: tuple[int, Any] | None = None  # (policy id, submitted update or CompletedUpdate)
+        self.pending_batch: dict[str, int] = {}  # which batch the pending update trains on (its statistics say)
 
     # ---- publishing --------------------------------------------------------------------------
     def published(self) -> dict[int, tuple[int, Any]]:
@@ -68,10 +69,15 @@ class PolicyWeights:
             self.backend.prepare_learner(max(self.versions) + 1)
 
     # ---- updates -----------------------------------------------------------------------------
-    def submit_update(self, policy_id: int, episodes: Any) -> None:
-        """Submit PPO on ``episodes`` to the policy's learner (the serial backend runs it here)."""
+    def submit_update(self, policy_id: int, episodes: Any, iteration: int | None = None) -> None:
+        """Submit PPO on ``episodes`` to the policy's learner (the serial backend runs it here).
+        ``iteration``: the number of the metrics row (and of ``episodes.jsonl``'s ``iteration``) of
+        the iteration that sampled them; the update's statistics name it and the policy
+        (``batch_iteration``, ``batch_policy``), so a pipelined row, which reports the previous
+        iteration's update, says whose it is."""
         base = self.learner_versions[policy_id]  # a retried update from this version is applied once
         self.pending = (policy_id, self.backend.submit_update(policy_id, episodes, base))
+        self.pending_batch = {"batch_policy": policy_id} | ({} if iteration is None else {"batch_iteration": iteration})
         self.learner_versions[policy_id] = base + 1
 
     def complete_pending(self) -> tuple[int, dict[str, Any], Any] | None:
@@ -80,7 +86,8 @@ class PolicyWeights:
             return None
         policy_id, update = self.pending
         if not isinstance(update, CompletedUpdate):
-            update = CompletedUpdate(*self.backend.collect_update(update))
+            stats, handle = self.backend.collect_update(update)
+            update = CompletedUpdate({**stats, **self.pending_batch}, handle)
             self.pending = (policy_id, update)
         return policy_id, update.stats, update.handle
 
