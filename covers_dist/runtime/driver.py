@@ -218,8 +218,9 @@ class Trainer:
             deadline = None if rt.time_limit_minutes is None else self.clock_start + 60.0 * rt.time_limit_minutes
             progress = Progress(rt.total_env_steps, rt.log_every_s, self.env_steps, deadline=deadline)
             row: dict[str, Any] = {}
-            # why the loop ends before total_env_steps; a resumed run that met eval.stop_at stops at once
-            reason = self._early_stop(deadline)
+            # why the loop ends before total_env_steps; a resumed run that met eval.stop_at stops at
+            # once, a time limit only after an iteration (however short the limit, a run does one)
+            reason = self._early_stop(None)
             while self.env_steps < rt.total_env_steps and not self._stop and reason is None:
                 row = self.step()
                 if self.evaluation.due(self.iteration):
