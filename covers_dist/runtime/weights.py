@@ -69,7 +69,7 @@ class PolicyWeights:
             self.backend.prepare_learner(max(self.versions) + 1)
 
     # ---- updates -----------------------------------------------------------------------------
-    def submit_update(self, policy_id: int, episodes: Any, iteration: int | None = None) -> None:
+    def submit_update(self, policy_id: int, episodes: Any, iteration: int) -> None:
         """Submit PPO on ``episodes`` to the policy's learner (the serial backend runs it here).
         ``iteration``: the number of the metrics row (and of ``episodes.jsonl``'s ``iteration``) of
         the iteration that sampled them; the update's statistics name it and the policy
@@ -77,7 +77,7 @@ class PolicyWeights:
         iteration's update, says whose it is."""
         base = self.learner_versions[policy_id]  # a retried update from this version is applied once
         self.pending = (policy_id, self.backend.submit_update(policy_id, episodes, base))
-        self.pending_batch = {"batch_policy": policy_id} | ({} if iteration is None else {"batch_iteration": iteration})
+        self.pending_batch = {"batch_policy": policy_id, "batch_iteration": iteration}
         self.learner_versions[policy_id] = base + 1
 
     def complete_pending(self) -> tuple[int, dict[str, Any], Any] | None:
