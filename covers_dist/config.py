@@ -178,11 +178,19 @@ class PPOConfig:
         min=0.0,
     )
     target_kl: float | None = _f(None, "Stop the epochs early once approx-KL exceeds this (null: never).")
+    log_std_cap: float | None = _f(
+        None,
+        "A falling cap on the policy's learned log standard deviation: after each update every entry is clipped "
+        "to at most a bound that falls linearly from the learner's starting value (network.init_log_std) at "
+        "update 0 to this at ppo.total_updates, and stays there (the exploration noise shrinks on a schedule "
+        "without an entropy term; docs/learning.md). null: the standard deviation is learned freely.",
+    )
     norm_adv: bool = _f(True, "Normalize advantages per minibatch.")
     total_updates: int | None = _f(
         None,
-        "Horizon of the linear learning-rate schedule, in updates of one policy; null: the run's length in "
-        "updates, runtime.total_env_steps / (clustering.update_every * env.max_episode_steps) (Config.learner_ppo).",
+        "Horizon of the linear learning-rate schedule and of ppo.log_std_cap, in updates of one policy; null: the "
+        "run's length in updates, runtime.total_env_steps / (clustering.update_every * env.max_episode_steps) "
+        "(Config.learner_ppo).",
         min=1,
     )
     reward_scale: float = _f(

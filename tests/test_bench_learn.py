@@ -69,6 +69,7 @@ def learn(capsys, monkeypatch):
         (["--peer-budget-factor", "0.5"], ["--peer-budget-factor", ">= 1"]),
         (["--eval-every", "0"], ["--eval-every", ">= 1"]),
         (["--keep-runs"], ["--keep-runs", "--out"]),
+        (["--contenders", "covers,sb3", "--set", "ppo.log_std_cap=-1.0"], ["ppo.log_std_cap", "sb3"]),
     ],
 )
 def test_bad_arguments_are_one_line_errors(learn, argv, words):

@@ -243,6 +243,41 @@ def test_a_null_horizon_is_the_runs_length_in_updates():
         PPOLearner(make_model(), PPOConfig(lr_schedule="linear", total_updates=None))
 
 
+def test_log_std_cap_falls_linearly_and_clips_the_learned_std():
+    model = make_model()  # init_log_std -0.5 (NetworkConfig's default)
+    start = float(model.log_std_free.detach().max())
+    learner = PPOLearner(model, PPOConfig(lr=1e-3, minibatch_size=48, log_std_cap=-2.0, total_updates=4))
+    episodes = make_episodes(model)
+    caps = []
+    for _ in range(6):
+        stats = learner.update(episodes)
+        caps.append(stats["log_std_cap"])
+        assert float(model.log_std_free.detach().max()) <= stats["log_std_cap"] + 1e-7
+    expected = [start + (-2.0 - start) * min(1.0, k / 4) for k in range(1, 7)]
+    np.testing.assert_allclose(caps, expected, rtol=1e-6)
+    assert caps[-1] == caps[-2] == -2.0  # held past the horizon
+    # tied within planar pairs before and after: the clip keeps the policy equivariant
+    assert torch.equal(model.log_std()[0], model.log_std()[1])
+    # off: the statistic is NaN and the std is left to the optimizer
+    free = make_model()
+    assert math.isnan(PPOLearner(free, PPOConfig(minibatch_size=48)).update(make_episodes(free))["log_std_cap"])
+
+
+def test_log_std_cap_needs_a_horizon_and_survives_a_checkpoint():
+    with pytest.raises(ValueError, match="ppo.log_std_cap needs ppo.total_updates"):
+        PPOLearner(make_model(), PPOConfig(log_std_cap=-1.0, total_updates=None))
+    cfg = PPOConfig(minibatch_size=48, log_std_cap=-1.5, total_updates=10)
+    model = build_actor_critic(dataclasses.replace(SMALL_NET, init_log_std=0.0), LAYOUT, seed=0)
+    learner = PPOLearner(model, cfg)
+    episodes = make_episodes(model)
+    learner.update(episodes)
+    # a learner restored into a model built with another initial std starts its cap where the saved one did
+    clone = PPOLearner(make_model(seed=4), cfg)
+    clone.load_state_dict(learner.state_dict())
+    assert clone.log_std_start == learner.log_std_start == 0.0
+    assert clone.update(episodes)["log_std_cap"] == learner.update(episodes)["log_std_cap"] == pytest.approx(-0.3)
+
+
 def test_peers_follow_the_learners_schedule_update_by_update():
     """bench learn's peers get covers-dist's linear schedule: SB3 through its learning-rate callable,
     RLlib through its piecewise schedule of env steps; each gives update k the learner's rate."""

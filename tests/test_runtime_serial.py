@@ -151,3 +151,21 @@ def test_learner_threads_default_to_one_unless_the_learner_reserves_cores():
     assert threads("runtime.learner_threads=2", "runtime.learner_num_cpus=8") == 2
     with pytest.raises(ConfigError, match="learner_threads"):
         threads("runtime.learner_threads=-1")
+
+
+def test_log_std_cap_reaches_the_published_weights(tmp_path):
+    """ppo.log_std_cap in a run: the metrics name each update's cap (falling to the final value at
+    the run's length in updates) and the weights the workers act with carry the clipped std."""
+    cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=1600", "ppo.log_std_cap=-2.0", "env.tasks=[reach]")
+    trainer = Trainer(cfg, log=lambda *_: None)
+    try:
+        trainer.run()
+        rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+        caps = [r["ppo/log_std_cap"] for r in rows if "ppo/log_std_cap" in r]
+        start = cfg.network.init_log_std
+        # rows report updates 1, 2, ... (the last row's update may still be in flight at its row)
+        assert len(caps) >= 3 and caps == pytest.approx([start + (-2.0 - start) * k / 4 for k in range(1, len(caps) + 1)])
+        (pid,) = trainer.weights.versions  # one task: one policy, 4 updates, so the cap is at its final value
+        assert float(trainer.backend.call_learner(pid, "weights")[1]["log_std_free"].max()) <= -2.0 + 1e-7
+    finally:
+        trainer.close()

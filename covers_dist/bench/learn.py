@@ -342,6 +342,7 @@ class _CoversContender:
             "normalize_advantages": "per minibatch" if cfg.ppo.norm_adv else False,
             "rollout_workers": cfg.runtime.num_workers,
             "envs_per_worker": cfg.runtime.envs_per_worker,
+            **({} if cfg.ppo.log_std_cap is None else {"log_std_cap": float(cfg.ppo.log_std_cap)}),
         }
 
     def close(self) -> None:
@@ -875,6 +876,12 @@ def run(args: argparse.Namespace) -> int:
     # that), no held-out pairs
     overrides = ["env.episodes_per_task=1", *user, f"env.tasks=[{task}]", "env.held_out=0", "eval.tasks=null"]
     cfg0 = load_config(args.config, overrides)
+    peers = [n for n in chosen if n in PEERS]
+    if cfg0.ppo.log_std_cap is not None and peers:
+        _fail(
+            f"ppo.log_std_cap is applied by covers-dist's learner only; the peers {peers} would train without it. "
+            "Run them in another invocation without it, or drop it"
+        )
     kept = {n: str(Path(args.out) / "runs" / n) for n in chosen if getattr(args, "keep_runs", False) and n not in PEERS}
     for run_dir in kept.values():
         if Path(run_dir).is_dir() and any(Path(run_dir).iterdir()):

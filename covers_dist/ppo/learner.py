@@ -15,7 +15,11 @@ whose approximate KL to the behaviour policy exceeds it (that minibatch is not a
 
 The learning rate follows ``lr_schedule``: constant, or linear from ``lr`` at update 0 to 0 at
 update ``total_updates`` (and 0 after; a run's learners get ``Config.learner_ppo``, where a null
-``total_updates`` is the run's length in updates). The learner owns the optimizer; :meth:`state_dict`
+``total_updates`` is the run's length in updates). With ``log_std_cap`` set, after each update the
+model's learned log standard deviation is clipped to at most :func:`log_std_cap_at` of the update
+count: a bound falling linearly from the value the model started with to ``log_std_cap`` at
+``total_updates`` (the rollout workers get the clipped value with the weights, so every episode is
+acted by the standard deviation its update was computed for). The learner owns the optimizer; :meth:`state_dict`
 covers the model weights, the optimizer, the update counters and the shuffling RNG.
 
 Episodes acted by another network (``update(..., reevaluate=...)``, the runtime's batch acted by
@@ -40,7 +44,10 @@ from ..config import PPOConfig
 from .gae import compute_gae
 from .loss import normalize_advantages, ppo_loss
 
-__all__ = ["PPOLearner", "ReturnNormalizer", "episodes_to_batch", "resolve_precision", "native_bf16_cpu", "EPISODE_KEYS", "STAT_KEYS"]
+__all__ = [
+    "PPOLearner", "ReturnNormalizer", "episodes_to_batch", "log_std_cap_at", "resolve_precision", "native_bf16_cpu",
+    "EPISODE_KEYS", "STAT_KEYS",
+]  # fmt: skip
 
 EPISODE_KEYS = ("image", "proprio", "action", "logprob", "value", "reward", "success", "terminated", "truncated")
 #: Keys of the dict returned by :meth:`PPOLearner.update`.
@@ -48,7 +55,7 @@ STAT_KEYS = (
     "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "grad_norm",
     "skipped_steps", "optimizer_steps", "epochs_completed", "early_stopped", "lr", "num_samples",
     "num_episodes", "episode_return_mean", "success_rate", "update_time_s", "samples_per_s", "update_count", "bf16", "reward_divisor",
-    "bound_loss", "mean_out_of_box", "reevaluated_samples",
+    "bound_loss", "mean_out_of_box", "reevaluated_samples", "log_std_cap",
 )  # fmt: skip
 
 
@@ -194,6 +201,11 @@ def scheduled_learning_rate(lr: float, schedule: str, update: int, total_updates
     return lr * max(0.0, 1.0 - update / int(total_updates or 1))
 
 
+def log_std_cap_at(start: float, final: float, update: int, total_updates: int) -> float:
+    """The cap on the log std after ``update`` updates: ``start`` at 0, linear to ``final`` at ``total_updates``, then held."""
+    return start + (final - start) * min(1.0, update / max(1, int(total_updates)))
+
+
 class PPOLearner:
     """PPO-clip updates of ``model`` (an :class:`covers_dist.models.ActorCritic`) as configured."""
 
@@ -205,9 +217,16 @@ class PPOLearner:
                 "ppo.lr_schedule=linear needs ppo.total_updates; a null one is the run's length: "
                 "pass Config.learner_ppo, not Config.ppo"
             )
+        if ppo_cfg.log_std_cap is not None and ppo_cfg.total_updates is None:
+            raise ValueError(
+                "ppo.log_std_cap needs ppo.total_updates; a null one is the run's length: "
+                "pass Config.learner_ppo, not Config.ppo"
+            )
         for name in ("evaluate_actions", "get_weights", "set_weights"):
             if not callable(getattr(model, name, None)):
                 raise TypeError(f"model must provide {name}() (an ActorCritic), got {type(model).__name__}")
+        if ppo_cfg.log_std_cap is not None and not isinstance(getattr(model, "log_std_free", None), torch.Tensor):
+            raise TypeError(f"ppo.log_std_cap needs a model with a learned log_std_free, got {type(model).__name__}")
         self.model = model
         self.cfg = ppo_cfg
         self.seed = int(seed)
@@ -219,6 +238,8 @@ class PPOLearner:
         self.precision = resolve_precision(ppo_cfg.precision, device)
         self._autocast_device = device.type
         self.return_norm = ReturnNormalizer(ppo_cfg.gamma) if ppo_cfg.reward_norm == "return" else None
+        # where the falling cap starts: the model's log std before any update (network.init_log_std)
+        self.log_std_start = float(model.log_std_free.detach().max()) if ppo_cfg.log_std_cap is not None else None
 
     def learning_rate(self) -> float:
         """The learning rate the next update will use."""
@@ -339,6 +360,7 @@ class PPOLearner:
         self.optimizer.zero_grad(set_to_none=True)
         self.model.train(was_training)
         self.update_count += 1
+        cap = self._apply_log_std_cap()
         self.skipped_total += skipped
         elapsed = time.perf_counter() - start
         stats: dict[str, Any] = {k: (v / steps if steps else float("nan")) for k, v in sums.items()}
@@ -360,8 +382,18 @@ class PPOLearner:
             reward_divisor=1.0 / scale,  # raw rewards are divided by this before GAE
             mean_out_of_box=out_of_box / out_count if out_count else float("nan"),
             reevaluated_samples=reevaluated,
+            log_std_cap=float("nan") if cap is None else cap,
         )
         return stats
+
+    @torch.no_grad()
+    def _apply_log_std_cap(self) -> float | None:
+        """Clip the model's log std to the cap of the current update count; the cap, or None when off."""
+        if self.cfg.log_std_cap is None or self.log_std_start is None:
+            return None
+        cap = log_std_cap_at(self.log_std_start, self.cfg.log_std_cap, self.update_count, int(self.cfg.total_updates or 1))
+        self.model.log_std_free.clamp_(max=cap)
+        return cap
 
     # ---- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -374,6 +406,7 @@ class PPOLearner:
             "rng_state": self._rng.get_state(),
             "seed": self.seed,
             "return_norm": None if self.return_norm is None else self.return_norm.state_dict(),
+            "log_std_start": self.log_std_start,
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -387,6 +420,8 @@ class PPOLearner:
         self.skipped_total = int(state["skipped_total"])
         self._rng.set_state(state["rng_state"])
         self.seed = int(state.get("seed", self.seed))
+        if self.cfg.log_std_cap is not None and state.get("log_std_start") is not None:
+            self.log_std_start = float(state["log_std_start"])
         saved = state.get("return_norm")
         if self.return_norm is not None:
             if saved is None:  # a learner saved without return normalisation: its statistics start afresh
