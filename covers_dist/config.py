@@ -147,6 +147,12 @@ class NetworkConfig:
         "tenths of a metre about the table's centre, gripper opening to -1..1; docs/models.md). Planar pairs "
         "take one scale and no shift, so equivariance stays exact. false: the raw proprio (older runs).",
     )
+    critic: Literal["shared", "separate"] = _f(
+        "shared",
+        "shared: the value head reads the policy's trunk (one network); separate: the value comes from a second "
+        "core of the same shape, so the value loss no longer moves the features the policy and the clustering "
+        "read (about twice the network's compute; docs/models.md).",
+    )
     cnn_width: float | None = _f(
         None,
         "CNN twin channels = round(channels[i] * cnn_width); null: sqrt(|group|), a similar parameter count.",

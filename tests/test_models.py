@@ -539,3 +539,37 @@ def test_escnn_and_pot_are_imported_without_scikit_learn_and_both_still_import()
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.split() == ["_LazyModule", "False", "1.0", "True", "False", "True", "1.0", "True"], out.stdout
+
+
+@pytest.mark.parametrize("kind", ["equivariant", "cnn"])
+def test_separate_critic_keeps_the_policy_and_its_losses_apart(kind):
+    """network.critic=separate: the actor is the shared build's (same seed, same mean and features),
+    the value comes from its own core, each loss reaches only its own weights, the fast path is the
+    module, and the equivariant pair stays exactly equivariant."""
+    net = NetworkConfig(channels=[2, 4], hidden=4)
+    shared = build_actor_critic(net, METAWORLD_LAYOUT, kind=kind, seed=3)
+    split = build_actor_critic(dataclasses.replace(net, critic="separate"), METAWORLD_LAYOUT, kind=kind, seed=3)
+    assert split.num_parameters() == 2 * shared.num_parameters() - shared.log_std_free.numel()
+    obs = random_obs(METAWORLD_LAYOUT, 8)
+    tens = {k: torch.from_numpy(v) for k, v in obs.items()}
+    for model in (shared, split):
+        model.eval()
+    with torch.no_grad():
+        (m1, _, v1), (m2, _, v2) = shared(tens), split(tens)
+    torch.testing.assert_close(m1, m2)
+    torch.testing.assert_close(shared.features_np(obs), split.features_np(obs))
+    assert not torch.allclose(v1, v2)  # the critic core has its own weights
+    actions, _, values = split.act(obs, deterministic=True)
+    np.testing.assert_allclose(actions, m2.numpy(), atol=1e-5)
+    np.testing.assert_allclose(values, v2.numpy(), atol=1e-5)
+    split.train()
+    for out, touched, untouched in ((1, "critic", "actor"), (0, "actor", "critic")):  # 1: the value, 0: the mean
+        split.zero_grad(set_to_none=True)
+        split(tens)[2 * out].sum().backward()  # (mean, log_std, value)
+        grads = {n: p.grad for n, p in split.named_parameters() if n.startswith(f"core.{untouched}.")}
+        assert grads and all(g is None or not g.any() for g in grads.values()), untouched
+        assert any(p.grad is not None and p.grad.any() for n, p in split.named_parameters() if n.startswith(f"core.{touched}."))
+    if kind == "equivariant":
+        split.eval()
+        assert max_error(equivariance_errors(split, obs)) < TOL
+        assert max_error(equivariance_errors(split, obs, fast=True)) < TOL

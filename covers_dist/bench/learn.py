@@ -336,7 +336,8 @@ class _CoversContender:
         cfg = self.cfg
         return {
             "framework": "covers-dist",
-            "network": f"covers-dist {cfg.network.kind}, channels {list(cfg.network.channels)}, hidden {cfg.network.hidden}",
+            "network": f"covers-dist {cfg.network.kind}, channels {list(cfg.network.channels)}, hidden {cfg.network.hidden}"
+            + ("" if cfg.network.critic == "shared" else f", {cfg.network.critic} critic"),
             "observation": "image + proprio",
             **ppo_settings(cfg),
             "normalize_advantages": "per minibatch" if cfg.ppo.norm_adv else False,
@@ -881,6 +882,11 @@ def run(args: argparse.Namespace) -> int:
         _fail(
             f"ppo.log_std_cap is applied by covers-dist's learner only; the peers {peers} would train without it. "
             "Run them in another invocation without it, or drop it"
+        )
+    if cfg0.network.critic != "shared" and peers:
+        _fail(
+            f"network.critic={cfg0.network.critic} is built by covers-dist's contenders only; the peers {peers} "
+            "have a shared critic. Run them in another invocation without it, or drop it"
         )
     kept = {n: str(Path(args.out) / "runs" / n) for n in chosen if getattr(args, "keep_runs", False) and n not in PEERS}
     for run_dir in kept.values():

@@ -47,6 +47,8 @@ class CoversRLModule(TorchRLModule, ValueFunctionAPI):
 
         mc = dict(self.model_config or {})
         net = NetworkConfig(**mc["network"])
+        if net.critic != "shared":  # compute_values reads the value head off the policy's features
+            raise ValueError(f"network.critic={net.critic}: the RLlib module supports the shared critic only")
         layout = suite_layout(mc["suite"], int(mc["image_size"]))
         self.net = build_actor_critic(net, layout, seed=mc.get("seed"))
 

@@ -61,14 +61,21 @@ def build_actor_critic(
 
 
 def _build(net_cfg: NetworkConfig, layout: ObsLayout, kind: str) -> ActorCritic:
-    if kind == "equivariant":
-        from .equivariant import EquivariantCore
+    core = _core(net_cfg, layout, kind)
+    if net_cfg.critic == "separate":  # drawn after the actor core: the actor's weights match a shared build's
+        from .critic import SeparateCritic
 
-        core = EquivariantCore(layout, net_cfg.group, list(net_cfg.channels), net_cfg.hidden, net_cfg.space_to_depth)
-    else:
-        from .cnn import CNNCore
-
-        core = CNNCore(layout, list(net_cfg.channels), net_cfg.hidden, cnn_width(net_cfg), net_cfg.space_to_depth)
+        core = SeparateCritic(core, _core(net_cfg, layout, kind))
     return ActorCritic(
         core, layout, net_cfg.init_log_std, kind, proprio_norm=net_cfg.proprio_norm, action_mean=net_cfg.action_mean
     )
+
+
+def _core(net_cfg: NetworkConfig, layout: ObsLayout, kind: str) -> torch.nn.Module:
+    if kind == "equivariant":
+        from .equivariant import EquivariantCore
+
+        return EquivariantCore(layout, net_cfg.group, list(net_cfg.channels), net_cfg.hidden, net_cfg.space_to_depth)
+    from .cnn import CNNCore
+
+    return CNNCore(layout, list(net_cfg.channels), net_cfg.hidden, cnn_width(net_cfg), net_cfg.space_to_depth)
