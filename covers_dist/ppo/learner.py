@@ -382,7 +382,7 @@ class PPOLearner:
             reward_divisor=1.0 / scale,  # raw rewards are divided by this before GAE
             mean_out_of_box=out_of_box / out_count if out_count else float("nan"),
             reevaluated_samples=reevaluated,
-            log_std_cap=float("nan") if cap is None else cap,
+            log_std_cap=cap,  # None when off (not NaN: statistics compare equal across a retried update)
         )
         return stats
 
