@@ -878,15 +878,12 @@ def run(args: argparse.Namespace) -> int:
     overrides = ["env.episodes_per_task=1", *user, f"env.tasks=[{task}]", "env.held_out=0", "eval.tasks=null"]
     cfg0 = load_config(args.config, overrides)
     peers = [n for n in chosen if n in PEERS]
-    if cfg0.ppo.log_std_cap is not None and peers:
+    own = [f"ppo.log_std_cap={cfg0.ppo.log_std_cap}"] * (cfg0.ppo.log_std_cap is not None)
+    own += [f"network.critic={cfg0.network.critic}"] * (cfg0.network.critic != "shared")
+    if own and peers:
         _fail(
-            f"ppo.log_std_cap is applied by covers-dist's learner only; the peers {peers} would train without it. "
+            f"{', '.join(own)}: covers-dist's contenders only; the peers {peers} would train without it. "
             "Run them in another invocation without it, or drop it"
-        )
-    if cfg0.network.critic != "shared" and peers:
-        _fail(
-            f"network.critic={cfg0.network.critic} is built by covers-dist's contenders only; the peers {peers} "
-            "have a shared critic. Run them in another invocation without it, or drop it"
         )
     kept = {n: str(Path(args.out) / "runs" / n) for n in chosen if getattr(args, "keep_runs", False) and n not in PEERS}
     for run_dir in kept.values():

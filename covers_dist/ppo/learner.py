@@ -212,16 +212,13 @@ class PPOLearner:
     def __init__(self, model: torch.nn.Module, ppo_cfg: PPOConfig, seed: int = 0) -> None:
         if not isinstance(ppo_cfg, PPOConfig):
             raise TypeError(f"ppo_cfg must be a PPOConfig, got {type(ppo_cfg).__name__}")
-        if ppo_cfg.lr_schedule == "linear" and ppo_cfg.total_updates is None:
-            raise ValueError(
-                "ppo.lr_schedule=linear needs ppo.total_updates; a null one is the run's length: "
-                "pass Config.learner_ppo, not Config.ppo"
-            )
-        if ppo_cfg.log_std_cap is not None and ppo_cfg.total_updates is None:
-            raise ValueError(
-                "ppo.log_std_cap needs ppo.total_updates; a null one is the run's length: "
-                "pass Config.learner_ppo, not Config.ppo"
-            )
+        schedules = (("ppo.lr_schedule=linear", ppo_cfg.lr_schedule == "linear"), ("ppo.log_std_cap", ppo_cfg.log_std_cap is not None))
+        for schedule, on in schedules:
+            if on and ppo_cfg.total_updates is None:
+                raise ValueError(
+                    f"{schedule} needs ppo.total_updates; a null one is the run's length: "
+                    "pass Config.learner_ppo, not Config.ppo"
+                )
         for name in ("evaluate_actions", "get_weights", "set_weights"):
             if not callable(getattr(model, name, None)):
                 raise TypeError(f"model must provide {name}() (an ActorCritic), got {type(model).__name__}")
@@ -389,7 +386,7 @@ class PPOLearner:
     @torch.no_grad()
     def _apply_log_std_cap(self) -> float | None:
         """Clip the model's log std to the cap of the current update count; the cap, or None when off."""
-        if self.cfg.log_std_cap is None or self.log_std_start is None:
+        if self.log_std_start is None:  # set exactly when ppo.log_std_cap is
             return None
         cap = log_std_cap_at(self.log_std_start, self.cfg.log_std_cap, self.update_count, int(self.cfg.total_updates or 1))
         self.model.log_std_free.clamp_(max=cap)
