@@ -188,8 +188,34 @@ def test_group_evaluation_counts_success_ever_reached_and_refuses_sampling_a_gre
         evaluator.close()
     assert still["success"] == {"e": 0.0, "r": 0.0}  # standing still never reaches the goal
     assert still["ci95"]["e"][0] == 0.0 and 0.0 < still["ci95"]["e"][1] < 1.0
+    assert still["misses"] == {}  # the toy tasks do not say how close an episode came
     with pytest.raises(ValueError, match="greedily only"):
         GreedyPolicy(lambda obs: obs["proprio"]).act({"image": None, "proprio": np.zeros((1, 2))}, deterministic=False)
+
+
+def test_group_evaluation_on_meta_world_says_how_far_the_failures_stayed():
+    from covers_dist.bench.learn import _misses_text
+    from covers_dist.evaluation.episodes import GreedyPolicy
+
+    cfg = load_config("configs/stream_cpu.yaml", ["env.max_episode_steps=30"])
+    evaluator = GroupEvaluation(cfg, "reach-v3", ["e", "rf"], episodes=2, seed=0)
+
+    class Still:
+        choose = staticmethod(lambda obs, gids: {"policy_id": 0, "decision": "only", "nearest_distance": None})
+
+        def weights_map(self):
+            return {0: (0, GreedyPolicy(lambda obs: np.zeros((len(obs["image"]), 4), np.float32)))}
+
+    try:
+        still = evaluator.evaluate(Still())
+    finally:
+        evaluator.close()
+    assert still["success"] == {"e": 0.0, "rf": 0.0}
+    assert sorted(still["misses"]) == ["e", "rf"]
+    for miss in still["misses"].values():  # a still hand starts ~0.2-0.3 m from a goal of radius 0.05
+        assert miss["misses"] == 2 and miss["misses_closest_median"] > 2.0 and miss["near_misses"] == 0
+    assert _misses_text(still["misses"]) == "failures: 4 (0 within 1.5 success radii); "
+    assert _misses_text({}) == ""
 
 
 def test_covers_evaluates_each_transform_with_the_policy_the_bank_picks(tmp_path, one_torch_thread):

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from covers_dist.evaluation.stats import success_summary, wilson_interval
+from covers_dist.evaluation.stats import NEAR_MISS, miss_summary, success_summary, wilson_interval
 
 
 def test_wilson_interval_matches_values_known_by_hand():
@@ -43,3 +43,28 @@ def test_success_summary_counts_episodes_and_distinct_states():
     assert success_summary([0.0])["distinct_initial_states"] is None
     with pytest.raises(ValueError):
         success_summary([])
+
+
+def test_miss_summary_says_how_far_the_failures_stayed():
+    out = miss_summary([1.0, 0.0, 0.0, 0.0, 0.0], [0.4, 1.2, 3.0, 1.5, None])
+    assert out == {"misses": 3, "misses_closest_median": 1.5, "near_misses": 2}  # 1.2 and 1.5 <= NEAR_MISS
+    assert NEAR_MISS == 1.5
+    assert miss_summary([1.0, 1.0], [0.2, 0.9]) == {}  # no failures
+    assert miss_summary([0.0, 0.0], [None, None]) == {}  # an env that reports no ratio
+    assert miss_summary([0.0, 0.0], None) == {}
+
+
+def test_pairs_table_shows_the_misses_only_where_an_env_reported_them():
+    from covers_dist.evaluation.report import pairs_table
+
+    def pair(g, results):
+        return {"task": "reach-v3", "g": g, "status": "seen", "agnostic_policy": 0, "agnostic_decision": "recall",
+                "oracle_policy": 0, "results": {"greedy/agnostic": results}}  # fmt: skip
+
+    plain = {"modes": ["greedy"], "selections": ["agnostic"], "pairs": [pair("e", {"success": 1.0, "successes": 4, "n": 4})]}
+    assert "misses" not in pairs_table(plain)
+    miss = {"success": 0.5, "successes": 2, "n": 4, "misses": 2, "misses_closest_median": 1.12, "near_misses": 2}
+    table = pairs_table({**plain, "pairs": plain["pairs"] + [pair("r", miss)]})
+    assert "misses greedy/agnostic" in table.splitlines()[0]
+    assert "2 at 1.12 radii (2 near)" in table
+    assert table.splitlines()[2].rstrip(" |").endswith("-")  # e: no failures

@@ -28,14 +28,32 @@ def _scripted_actions(env: MetaWorldTask, steps: int, seed: int):
     """Base-frame trajectory: Meta-World's expert plus seeded noise; records what the agent saw."""
     rng = np.random.default_rng(seed)
     obs, _ = env.reset(seed=seed)
-    record = {"obs": [obs], "action": [], "reward": [], "success": [], "trunc": []}
+    record = {"obs": [obs], "action": [], "reward": [], "success": [], "trunc": [], "target_ratio": []}
     for _ in range(steps):
         a = np.clip(env.expert_action() + rng.normal(0.0, 0.2, size=4), -1, 1).astype(np.float32)
         obs, r, term, trunc, info = env.step(a)
         assert term is False
         for k, v in (("obs", obs), ("action", a), ("reward", r), ("success", info["success"]), ("trunc", trunc)):
             record[k].append(v)
+        record["target_ratio"].append(info.get("target_ratio"))
     return record
+
+
+@pytest.mark.parametrize("task", BASE_TASKS)
+def test_target_ratio_is_one_exactly_at_success(task, base_runs):
+    """info["target_ratio"] (obj_to_target over the spec's success radius) is <= 1 on exactly the
+    steps Meta-World counts as successes: the radius matches Meta-World's own threshold."""
+    run = base_runs[task]
+    ratios = run["target_ratio"]
+    assert all(r is not None and np.isfinite(r) and r >= 0 for r in ratios)
+    assert [s == 1.0 for s in run["success"]] == [r <= 1.0 for r in ratios]
+    assert min(ratios) <= 1.0 < max(ratios)  # the expert's episode has both
+
+
+def test_success_radius_is_checked():
+    for bad in (0.0, -0.05, float("nan"), float("inf"), True, "0.05"):
+        with pytest.raises(ValueError, match="success_radius must be a positive distance"):
+            register_task("push-v3", success_radius=bad)
 
 
 @pytest.fixture(scope="module")
@@ -292,3 +310,31 @@ def test_set_element_matches_a_fresh_env():
     with pytest.raises(TypeError, match="GroupElement"):
         switched.set_element(3)
     switched.close()
+
+
+def test_eval_episodes_report_the_closest_approach():
+    """run_eval_episodes keeps each episode's smallest target_ratio: <= 1 on success, and on a
+    failure how far it stayed (here: a hand that never moves)."""
+    from covers_dist.evaluation.episodes import run_eval_episodes
+
+    envs = [MetaWorldTask("reach-v3", g, max_episode_steps=60) for g in ("e", "r3f")]
+
+    class Expert:
+        def act(self, obs, deterministic=True, generator=None):
+            return np.stack([env.expert_action() for env in envs]).astype(np.float32), None, None
+
+    class Still:
+        def act(self, obs, deterministic=True, generator=None):
+            return np.zeros((len(obs["proprio"]), 4), np.float32), None, None
+
+    solved = run_eval_episodes(Expert(), envs, [5, 6])
+    assert [ep["success"] for ep in solved] == [1.0, 1.0]
+    assert all(ep["closest"] <= 1.0 for ep in solved)
+    stayed = run_eval_episodes(Still(), envs, [5, 6])
+    assert [ep["success"] for ep in stayed] == [0.0, 0.0]
+    for env, seed, ep in zip(envs, (5, 6), stayed):  # the same episode stepped by hand: its smallest ratio
+        env.reset(seed=seed)
+        ratios = [env.step(np.zeros(4, np.float32))[4]["target_ratio"] for _ in range(60)]
+        assert ep["closest"] == min(ratios) > 1.0
+    for env in envs:
+        env.close()

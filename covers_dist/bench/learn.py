@@ -40,7 +40,10 @@ greedy episodes on each element, each (element, episode) reset with its own seed
 (:func:`covers_dist.evaluation.protocol.eval_seed`; the same seeds at every point and for every
 contender), so a point rests on |G| x episodes distinct initial states; each point records
 ``distinct_initial_states`` (counted from the states' fingerprints) and, per transform, its ``n``
-and Wilson 95% interval. An episode succeeds when ``info["success"]`` was ever true. Before each
+and Wilson 95% interval. An episode succeeds when ``info["success"]`` was ever true; where the
+env says how close it came (Meta-World's ``obj_to_target`` over the success radius), the point
+also records ``misses``: per transform, its failures' median closest approach in radii and how
+many were near misses (the progress line counts them). Before each
 evaluation the covers loop waits for the update in flight (its time counts as training) and its
 newest weights act without being published, so the run trains exactly as it would without the
 evaluation. Each transform is evaluated with the policy the bank would choose from the
@@ -93,6 +96,8 @@ CONTENDER_OVERRIDES: dict[str, list[str]] = {
 }
 #: Evaluations in a row that must meet the threshold for a run to count as solved.
 HELD_EVALUATIONS = 2
+#: What a curve point keeps of each transform's failed episodes (``covers_dist.evaluation.stats.miss_summary``).
+MISS_KEYS = ("misses", "misses_closest_median", "near_misses")
 
 #: A greedy policy: a batch of observations (``image`` uint8 (B, S, S, 3), ``proprio`` (B, P)) ->
 #: the actions (B, A) to send to the envs.
@@ -232,7 +237,9 @@ class GroupEvaluation:
         from ..evaluation.stats import wilson_interval
 
         k, n = sum(int(res["successes"]) for res in per.values()), sum(int(res["n"]) for res in per.values())
+        misses = {g: {key: res[key] for key in MISS_KEYS} for g, res in per.items() if "misses" in res}
         return {
+            "misses": misses,  # per transform with failures: how close they came (success radii)
             "success": {g: float(res["success"]) for g, res in per.items()},
             "ci95": {g: res["ci95"] for g, res in per.items()},
             "pooled": {"successes": k, "n": n, "ci95": [round(x, 4) for x in wilson_interval(k, n)]},
@@ -480,6 +487,7 @@ def race(
             "success": out["success"],
             "ci95": out["ci95"],
             "pooled": out["pooled"],  # every transform's episodes together: the mean's n and interval
+            "misses": out["misses"],
             "episodes_per_transform": out["episodes_per_transform"],
             "distinct_initial_states": out["distinct_initial_states"],
             "policy": out["policy"],
@@ -500,7 +508,7 @@ def race(
             f"learn {name}: {steps} env steps, {train_s:.1f} s training ({rate:.0f} steps/s), success min "
             f"{point['min_success']:.2f} mean {point['mean_success']:.2f} on {point['distinct_initial_states']} "
             f"initial states ({point['episodes_per_transform']} per transform; eval {spent:.1f} s), "
-            f"{streak} in a row >= {threshold}; {eta_txt}"
+            f"{_misses_text(out['misses'])}{streak} in a row >= {threshold}; {eta_txt}"
         )
         return point
 
@@ -550,6 +558,17 @@ def race(
         "steps_per_s": round(final_steps / train_s, 1) if train_s > 0 else None,
         "curve": curve,
     }
+
+
+def _misses_text(misses: Mapping[str, Mapping[str, Any]]) -> str:
+    """``failures: 9 (7 within 1.5 success radii); `` of a pass, or nothing when no env reported how close."""
+    from ..evaluation.stats import NEAR_MISS
+
+    if not misses:
+        return ""
+    total = sum(int(m["misses"]) for m in misses.values())
+    near = sum(int(m["near_misses"]) for m in misses.values())
+    return f"failures: {total} ({near} within {NEAR_MISS:g} success radii); "
 
 
 def _duration(seconds: float) -> str:

@@ -5,7 +5,9 @@ arm-free top-down image ``g(image)`` and the proprio ``[g(hand x, y), hand z, gr
 (x, y) measured from the symmetry centre (0, 0.6) (where the hand starts; button-press starts it
 at y = 0.4); its action ``(dx, dy, dz, gripper)`` has (dx, dy) mapped by ``g^-1`` before it
 reaches Meta-World. Reward and ``info["success"]`` are the base task's, so ``g.T`` is exactly
-equivalent to ``T``.
+equivalent to ``T``. Where the task's spec knows Meta-World's success radius, ``info["target_ratio"]``
+is the step's closest ``obj_to_target`` over that radius (<= 1 exactly on success): how far a
+failed episode stayed from success, in radii (an evaluation's "misses").
 
 Object and goal placement is drawn from each task's own Meta-World range with the env's seeded
 generator (``reset(seed=...)``); no MT1 wrapper is involved, so nothing re-samples or overwrites
@@ -290,15 +292,20 @@ class MetaWorldTask(gym.Env):
         if a.shape != (4,) or not np.all(np.isfinite(a)):
             raise ValueError(f"action must be 4 finite numbers (dx, dy, dz, gripper), got {action!r}")
         base = np.clip(a[self._act_perm] * self._act_sign, -1.0, 1.0)  # g^-1 on (dx, dy)
-        reward, success = 0.0, 0.0
+        reward, success, distance = 0.0, 0.0, math.inf
         for _ in range(self.action_repeat):  # the same action; one image after the last
             mw_obs, r, _, _, mw_info = self._mw.step(base)
             reward += float(r)
             success = max(success, float(mw_info["success"]))
+            distance = min(distance, float(mw_info.get("obj_to_target", math.inf)))
         self._t += 1
         self._mw_obs = mw_obs
         obs = self._observation(mw_obs)
-        return obs, reward, False, self._t >= self.max_episode_steps, {"success": success}
+        info = {"success": success}
+        radius = self.spec_entry.success_radius
+        if radius is not None and math.isfinite(distance):
+            info["target_ratio"] = distance / radius  # <= 1 exactly when Meta-World counts success
+        return obs, reward, False, self._t >= self.max_episode_steps, info
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._last_obs is None:

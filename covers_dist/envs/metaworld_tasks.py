@@ -51,6 +51,10 @@ class MetaWorldTaskSpec:
     #: hand, whose (x, y, z) the proprio carries; each must be visible at reset (the observability
     #: check holds them to it)
     success_state: tuple[str, ...] = ("object", "goal")
+    #: Meta-World's success radius on ``info["obj_to_target"]`` (metres): success is that distance
+    #: at or under it. The env reports the distance over the radius per step, so an evaluation can
+    #: say how far a failed episode stayed from success; ``None``: no ratio is reported.
+    success_radius: float | None = None
 
 
 TASKS: dict[str, MetaWorldTaskSpec] = {}
@@ -77,11 +81,13 @@ def register_task(
     hidden_sites: tuple[str, ...] = (),
     goal_z: float | None = None,
     success_state: tuple[str, ...] = ("object", "goal"),
+    success_radius: float | None = None,
 ) -> MetaWorldTaskSpec:
     """Add the Meta-World v3 environment ``name`` (e.g. ``push-v3``) as a base task group.
 
     ``goal_z``: hold the goal's height at this world z (metres) at every reset (see
-    :class:`MetaWorldTaskSpec`). ``success_state``: the positions besides the hand that decide
+    :class:`MetaWorldTaskSpec`). ``success_radius``: Meta-World's success threshold on
+    ``obj_to_target`` (metres), for the per-step ``info["target_ratio"]``. ``success_state``: the positions besides the hand that decide
     success, a subset of :data:`SUCCESS_STATE_KEYS`.
     """
     known = _all_v3_envs()
@@ -97,8 +103,18 @@ def register_task(
         raise ValueError(
             f"success_state must name distinct positions out of {SUCCESS_STATE_KEYS}, got {success_state!r}"
         )
+    if success_radius is not None:
+        if isinstance(success_radius, bool) or not isinstance(success_radius, (int, float)) or not 0 < success_radius < math.inf:
+            raise ValueError(f"success_radius must be a positive distance in metres or None, got {success_radius!r}")
+        success_radius = float(success_radius)
     spec = MetaWorldTaskSpec(
-        name, label or name, dict(colors or {}), tuple(hidden_sites), goal_z=goal_z, success_state=success_state
+        name,
+        label or name,
+        dict(colors or {}),
+        tuple(hidden_sites),
+        goal_z=goal_z,
+        success_state=success_state,
+        success_radius=success_radius,
     )
     TASKS[name] = spec
     return spec
@@ -114,10 +130,12 @@ def register_task(
 #   _target_pos the closed handle position; the drawer case is placed at a fixed z (0).
 # - plate-slide-v3: ||object - _target_pos|| <= 0.07 with object the puck (plate) and
 #   _target_pos the goal cage position, drawn with a fixed z (0).
-register_task("reach-v3", "Goal Reach", colors={"goal": (1.0, 0.85, 0.0)}, goal_z=0.15, success_state=("goal",))
-register_task("button-press-topdown-v3", "Button Press", success_state=("object", "goal"))
-register_task("drawer-close-v3", "Drawer Close", success_state=("object", "goal"))
-register_task("plate-slide-v3", "Plate Slide", hidden_sites=("goal",), success_state=("object", "goal"))
+register_task(
+    "reach-v3", "Goal Reach", colors={"goal": (1.0, 0.85, 0.0)}, goal_z=0.15, success_state=("goal",), success_radius=0.05
+)
+register_task("button-press-topdown-v3", "Button Press", success_state=("object", "goal"), success_radius=0.024)
+register_task("drawer-close-v3", "Drawer Close", success_state=("object", "goal"), success_radius=0.065)
+register_task("plate-slide-v3", "Plate Slide", hidden_sites=("goal",), success_state=("object", "goal"), success_radius=0.07)
 
 
 def robot_bodies(model: Any) -> set[int]:

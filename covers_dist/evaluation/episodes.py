@@ -11,8 +11,11 @@ Stable-Baselines3's model) plugs in through :class:`GreedyPolicy`.
 Each episode reports its success (``info["success"]`` ever true, Meta-World's convention), its
 return and a fingerprint of its initial state (:func:`initial_state_key`): the first observation
 mapped back to the base task by ``g^-1``, so the same underlying state has the same key under
-every element and two keys differ only where the states do. Plain Python and numpy; torch only
-for the sampling generator of stochastic episodes.
+every element and two keys differ only where the states do. Where the env reports how far the
+task is from success (``info["target_ratio"]``, Meta-World's ``obj_to_target`` over the success
+radius), the episode also reports its ``closest`` approach: a failure at 1.1 stopped just outside
+the radius, one at 5 never came near. Plain Python and numpy; torch only for the sampling
+generator of stochastic episodes.
 """
 
 from __future__ import annotations
@@ -73,7 +76,8 @@ def run_eval_episodes(
     layout: Any | None = None,
 ) -> list[dict[str, Any]]:
     """One episode per env, env ``i`` reset with ``seeds[i]``; per episode ``{"success", "return",
-    "length", "state_key"}`` (``state_key`` only when the envs expose their element ``g``)."""
+    "length", "state_key", "closest"}`` (``state_key`` only when the envs expose their element ``g``;
+    ``closest``, the episode's smallest ``info["target_ratio"]``, only when the env reports one)."""
     n = len(envs)
     if len(seeds) != n:
         raise ValueError(f"need one seed per env, got {len(seeds)} seeds for {n} envs")
@@ -85,6 +89,7 @@ def run_eval_episodes(
     success = [0.0] * n
     returns = [0.0] * n
     lengths = [0] * n
+    closest: list[float | None] = [None] * n
     live = list(range(n))
     while live:
         batch = {"image": np.stack([obs[i]["image"] for i in live]), "proprio": np.stack([obs[i]["proprio"] for i in live])}
@@ -93,12 +98,21 @@ def run_eval_episodes(
         for j, i in enumerate(live):
             obs[i], reward, terminated, truncated, info = envs[i].step(actions[j])
             success[i] = max(success[i], float(info.get("success", 0.0)))
+            if "target_ratio" in info:
+                ratio = float(info["target_ratio"])
+                closest[i] = ratio if closest[i] is None else min(closest[i], ratio)
             returns[i] += float(reward)
             lengths[i] += 1
             if not (terminated or truncated):
                 still.append(i)
         live = still
     return [
-        {"success": success[i], "return": returns[i], "length": lengths[i], **({"state_key": keys[i]} if keys[i] else {})}
+        {
+            "success": success[i],
+            "return": returns[i],
+            "length": lengths[i],
+            **({"state_key": keys[i]} if keys[i] else {}),
+            **({"closest": closest[i]} if closest[i] is not None else {}),
+        }
         for i in range(n)
     ]

@@ -29,7 +29,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from .stats import success_summary
+from .stats import miss_summary, success_summary
 
 __all__ = [
     "EVAL_SEED_TAG",
@@ -169,10 +169,11 @@ def pair_rows(
     oracle: dict[int, int],
 ) -> list[dict[str, Any]]:
     """Per pair: status, chosen policies and, per ``mode/selection``, success (with ``n``, ``successes``,
-    ``ci95`` and ``distinct_initial_states``) and mean return."""
+    ``ci95`` and ``distinct_initial_states``), mean return and, where the env reports how close an
+    episode came, how far the failures stayed (:func:`~covers_dist.evaluation.stats.miss_summary`)."""
     results: dict[str, dict[str, dict[str, Any]]] = {p.key: {} for p in pairs}
     for job, out in zip(jobs, outcomes):
-        summary = success_summary(out["success"], out.get("state_key"))
+        summary = {**success_summary(out["success"], out.get("state_key")), **miss_summary(out["success"], out.get("closest"))}
         for sel in job.selections:
             results[job.pair.key][f"{job.mode}/{sel}"] = {
                 "policy_id": job.policy_id,

@@ -45,15 +45,29 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
 
 
 def pairs_table(ev: dict[str, Any]) -> str:
-    """Every (task, g) of one pass: status, chosen policies, success per mode/selection."""
+    """Every (task, g) of one pass: status, chosen policies, success per mode/selection and, where
+    the env reports how close episodes came, the failures' median closest approach in success radii
+    and how many were near misses (within :data:`~covers_dist.evaluation.stats.NEAR_MISS`)."""
     keys = [f"{m}/{s}" for m in ev.get("modes", ["greedy"]) for s in ev.get("selections", ["agnostic"])]
     header = ["task", "g", "status", "agnostic policy (decision)", "oracle policy"] + [f"success {k}" for k in keys]
+    misses = any("misses" in res for r in ev["pairs"] for res in r.get("results", {}).values())
+    if misses:  # the env reports how close episodes came: how far the failures stayed
+        header += [f"misses {k}" for k in keys]
     rows = []
     for r in ev["pairs"]:
         choice = "n/a" if r.get("agnostic_policy") is None else f"{r['agnostic_policy']} ({r.get('agnostic_decision')})"
         oracle = "n/a" if r.get("oracle_policy") is None else str(r["oracle_policy"])
-        rows.append([r["task"], r["g"], r["status"], choice, oracle] + [_with_n(r.get("results", {}).get(k)) for k in keys])
+        results = r.get("results", {})
+        row = [r["task"], r["g"], r["status"], choice, oracle] + [_with_n(results.get(k)) for k in keys]
+        rows.append(row + ([_misses(results.get(k)) for k in keys] if misses else []))
     return markdown_table(header, rows)
+
+
+def _misses(res: dict[str, Any] | None) -> str:
+    """A pair's failed episodes and how close they came, ``2 at 1.12 radii (2 near)``, or ``-``."""
+    if not res or "misses" not in res:
+        return "-"
+    return f"{res['misses']} at {_f(res['misses_closest_median'])} radii ({res['near_misses']} near)"
 
 
 def _steps(n: Any) -> str:

@@ -9,12 +9,16 @@ Plain Python.
 from __future__ import annotations
 
 import math
+import statistics
 from typing import Any, Sequence
 
-__all__ = ["Z95", "wilson_interval", "success_summary"]
+__all__ = ["Z95", "NEAR_MISS", "wilson_interval", "success_summary", "miss_summary"]
 
 #: The normal quantile of a two-sided 95% interval.
 Z95 = 1.959963984540054
+
+#: A failed episode whose closest approach was within this many success radii is a near miss.
+NEAR_MISS = 1.5
 
 
 def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
@@ -46,4 +50,21 @@ def success_summary(outcomes: Sequence[float], state_keys: Sequence[Any] | None 
         "successes": k,
         "ci95": [round(lo, 4), round(hi, 4)],
         "distinct_initial_states": len(set(keys)) if keys else None,
+    }
+
+
+def miss_summary(outcomes: Sequence[float], closest: Sequence[float | None] | None) -> dict[str, Any]:
+    """How far the failed episodes stayed from success, from each episode's ``closest`` approach in
+    success radii (``info["target_ratio"]``): ``{"misses", "misses_closest_median", "near_misses"}``
+    (failures with a closest approach, the median of those approaches, and how many were within
+    :data:`NEAR_MISS` radii). ``{}`` when no failed episode has one (no failures, or an env that
+    reports no ratio)."""
+    pairs = list(zip(outcomes, closest or []))
+    failed = [float(c) for s, c in pairs if float(s) <= 0.0 and c is not None]
+    if not failed:
+        return {}
+    return {
+        "misses": len(failed),
+        "misses_closest_median": round(float(statistics.median(failed)), 4),
+        "near_misses": sum(1 for c in failed if c <= NEAR_MISS),
     }

@@ -211,7 +211,8 @@ class RolloutWorker:
 
     def eval_jobs(self, jobs: list[EvalJob], weights_map: dict[int, tuple[int, Any]]) -> list[dict[str, list[Any]]]:
         """Run every job's episodes with :func:`~covers_dist.evaluation.episodes.run_eval_episodes`;
-        per job ``{"success": [...], "return": [...], "state_key": [...]}`` (no frames).
+        per job ``{"success": [...], "return": [...], "state_key": [...], "closest": [...]}`` (no
+        frames; ``closest`` is None for episodes of envs that report no ``target_ratio``).
 
         ``weights_map`` is ``{policy id: (version, weights)}``; in this process a value may also be
         ``(version, policy)`` with a policy object (anything with ``act``, e.g.
@@ -228,7 +229,7 @@ class RolloutWorker:
                 self._ensure_weights(job.policy_id, version, handle)
                 policy = self.model
             deterministic = job.mode == "greedy"
-            result: dict[str, list[Any]] = {"success": [], "return": [], "state_key": []}
+            result: dict[str, list[Any]] = {"success": [], "return": [], "state_key": [], "closest": []}
             for start in range(0, len(job.seeds), width):
                 seeds = [int(x) for x in job.seeds[start : start + width]]
                 envs = [self._env(job.pair.task, job.pair.g, slot) for slot in range(len(seeds))]
@@ -238,6 +239,7 @@ class RolloutWorker:
                     result["success"].append(ep["success"])
                     result["return"].append(ep["return"])
                     result["state_key"].append(ep.get("state_key"))
+                    result["closest"].append(ep.get("closest"))
             out.append(result)
         return out
 
