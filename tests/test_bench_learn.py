@@ -532,6 +532,27 @@ def test_figure_draws_results_of_several_task_groups_in_one_png(tmp_path, learn)
                                                                             "seed 2 seed=2"]  # fmt: skip
 
 
+def test_figure_with_many_curves_puts_the_legend_under_the_axes(tmp_path, learn):
+    import struct
+
+    from covers_dist.bench.learn import LEGEND_INSIDE
+
+    def height(png):  # the IHDR chunk: width and height, big-endian, after the 16-byte header
+        return struct.unpack(">II", png.read_bytes()[16:24])[1]
+
+    heights = []
+    for n in (LEGEND_INSIDE, LEGEND_INSIDE + 4):
+        paths = []
+        for i in range(n):
+            path = tmp_path / f"n{n}-r{i}.json"
+            path.write_text(json.dumps(_result({"covers": _entry(False, None, None)}, seed=i, overrides=[f"seed={i}"])))
+            paths.append(str(path))
+        out = tmp_path / f"many{n}.png"
+        assert learn("--figure", ",".join(paths), "--plot", str(out)).returncode == 0
+        heights.append(height(out))
+    assert heights[1] > heights[0] * 1.3  # the labels got their own room instead of covering the curves
+
+
 @pytest.mark.parametrize(
     ("argv", "words"),
     [

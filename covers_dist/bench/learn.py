@@ -94,6 +94,8 @@ CONTENDER_OVERRIDES: dict[str, list[str]] = {
     "cnn": ["runtime.method=covers-cnn", "network.kind=cnn"],
     "rllib-cnn": ["runtime.method=covers-cnn", "network.kind=cnn"],
 }
+#: Curves per task that ``--figure`` still labels inside the axes; more go in a legend below them.
+LEGEND_INSIDE = 5
 #: Evaluations in a row that must meet the threshold for a run to count as solved.
 HELD_EVALUATIONS = 2
 #: What a curve point keeps of each transform's failed episodes (``covers_dist.evaluation.stats.miss_summary``).
@@ -821,7 +823,10 @@ def results_figure(results: Sequence[tuple[str, Mapping[str, Any]]], path: str |
             if isinstance(entry, Mapping) and "error" not in entry:
                 _check_curve(label, contender, entry)
         tasks += [res["task"]] if res["task"] not in tasks else []
-    fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.6), sharex=True, sharey=True, squeeze=False)
+    per_task = [sum(len(res["contenders"]) for _, res in results if res["task"] == t) for t in tasks]
+    below = max(per_task) > LEGEND_INSIDE  # many curves: the legend goes under the axes, the figure grows
+    height = 3.6 + (0.17 * max(per_task) + 0.3 if below else 0.0)
+    fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), height), sharex=True, sharey=True, squeeze=False)
     colour: dict[str, int] = {}
     for label, res in results:
         ax = axes[0][tasks.index(res["task"])]
@@ -841,7 +846,10 @@ def results_figure(results: Sequence[tuple[str, Mapping[str, Any]]], path: str |
         ax.axhline(threshold, color="grey", lw=0.8, ls=":")
         ax.set(title=task, xlabel="env steps")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        if below:
+            ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=1, frameon=False)
+        else:
+            ax.legend(fontsize=7, loc="lower right")
     axes[0][0].set_ylabel("greedy success (worst: solid, mean: dashed)")
     axes[0][0].set_ylim(-0.03, 1.08)
     path = Path(path)
