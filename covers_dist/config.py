@@ -13,6 +13,7 @@ combination raise :class:`ConfigError` with the dotted path and the bad value.
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -85,6 +86,13 @@ class EnvConfig:
         min=1,
         max=8,
     )
+    success_bonus: float = _f(
+        0.0,
+        "Added to the reward of every agent step on which the task succeeds (metaworld suite). Meta-World's "
+        "reward is nearly flat at the edge of success (Goal Reach: 97-99% of its maximum at 1.1-1.3 success "
+        "radii), so a policy can stop just outside it at almost no cost; 0 keeps Meta-World's reward.",
+        min=0.0,
+    )
     episodes_per_task: int = _f(20, "Episodes before the stream switches to the next task.", min=1)
     held_out: int = _f(0, "Number of (group, g) pairs held out of training for generalization tests.", min=0)
     render_backend: Literal["auto", "egl", "osmesa", "numpy"] = _f(
@@ -102,6 +110,10 @@ class EnvConfig:
             raise ConfigError(f"env.image_size={self.image_size}: Meta-World images must be 32..128 px")
         if self.action_repeat > 1 and self.suite != "metaworld":
             raise ConfigError(f"env.action_repeat={self.action_repeat}: action repeat applies to the metaworld suite only")
+        if not math.isfinite(self.success_bonus):
+            raise ConfigError(f"env.success_bonus={self.success_bonus}: must be a finite number >= 0")
+        if self.success_bonus > 0 and self.suite != "metaworld":
+            raise ConfigError(f"env.success_bonus={self.success_bonus}: the success bonus applies to the metaworld suite only")
         if self.suite == "metaworld" and self.max_episode_steps * self.action_repeat > METAWORLD_MAX_PATH_LENGTH:
             raise ConfigError(
                 f"env.max_episode_steps={self.max_episode_steps} x env.action_repeat={self.action_repeat} = "

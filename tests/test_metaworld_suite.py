@@ -50,6 +50,31 @@ def test_target_ratio_is_one_exactly_at_success(task, base_runs):
     assert min(ratios) <= 1.0 < max(ratios)  # the expert's episode has both
 
 
+def test_success_bonus_adds_to_the_reward_of_successful_steps_only():
+    runs = {}
+    for bonus in (0.0, 4.0):
+        env = MetaWorldTask("reach-v3", "rf", max_episode_steps=STEPS, success_bonus=bonus)
+        runs[bonus] = _scripted_actions(env, STEPS, SEED)
+        env.close()
+    plain, bonus = runs[0.0], runs[4.0]
+    assert plain["success"] == bonus["success"] and max(plain["success"]) == 1.0 and min(plain["success"]) == 0.0
+    np.testing.assert_allclose(np.array(bonus["reward"]) - np.array(plain["reward"]), 4.0 * np.array(plain["success"]))
+    for bad in (-1.0, float("nan"), float("inf"), True, "1"):
+        with pytest.raises(ValueError, match="success_bonus must be a finite number"):
+            MetaWorldTask("reach-v3", success_bonus=bad)
+
+
+def test_success_bonus_config_is_checked():
+    from covers_dist.config import load_config
+
+    assert load_config("configs/stream_cpu.yaml", ["env.success_bonus=10"]).env.success_bonus == 10.0
+    for value, words in (("-1", ">= 0"), ("nan", "finite"), ("inf", "finite")):
+        with pytest.raises(ConfigError, match=words):
+            load_config("configs/stream_cpu.yaml", [f"env.success_bonus={value}"])
+    with pytest.raises(ConfigError, match="metaworld suite only"):
+        load_config("configs/smoke.yaml", ["env.success_bonus=1"])
+
+
 def test_success_radius_is_checked():
     for bad in (0.0, -0.05, float("nan"), float("inf"), True, "0.05"):
         with pytest.raises(ValueError, match="success_radius must be a positive distance"):

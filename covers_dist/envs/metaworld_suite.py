@@ -127,6 +127,8 @@ class MetaWorldTask(gym.Env):
     robustness evaluation; the robot, the symmetry centre and the proprio do not move.
     ``observable``: apply the spec's fixed goal height (``goal_z``) at every reset (the default);
     ``False`` keeps Meta-World's own goal sampling, whose height the image cannot show.
+    ``success_bonus``: added to the reward of every agent step on which the task succeeds
+    (``info["success"]``); 0, the default, leaves Meta-World's reward as it is.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 80}
@@ -143,6 +145,7 @@ class MetaWorldTask(gym.Env):
         render_mode: str | None = None,
         observable: bool = True,
         action_repeat: int = 1,
+        success_bonus: float = 0.0,
     ) -> None:
         if task not in TASKS:
             raise ValueError(f"unknown Meta-World task {task!r}; expected one of {list(TASKS)}")
@@ -158,6 +161,9 @@ class MetaWorldTask(gym.Env):
                 f"max_episode_steps x action_repeat = {max_episode_steps * action_repeat} Meta-World steps; "
                 f"Meta-World allows at most {METAWORLD_MAX_PATH_LENGTH} per episode"
             )
+        bonus_ok = isinstance(success_bonus, (int, float, np.floating)) and not isinstance(success_bonus, bool)
+        if not bonus_ok or not 0 <= success_bonus < math.inf:
+            raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus!r}")
         if render_backend not in RENDER_BACKENDS:
             raise ValueError(f"render_backend must be one of {list(RENDER_BACKENDS)}, got {render_backend!r}")
         if not (isinstance(camera_shift, (int, float)) and math.isfinite(camera_shift) and camera_shift >= 0):
@@ -172,6 +178,7 @@ class MetaWorldTask(gym.Env):
         self.g_inv = self.g.inverse()
         self.max_episode_steps = int(max_episode_steps)
         self.action_repeat = int(action_repeat)
+        self.success_bonus = float(success_bonus)
         self.render_mode = render_mode
         self.layout = metaworld_layout(self.image_size)
         self.observation_space = spaces.Dict(
@@ -298,6 +305,7 @@ class MetaWorldTask(gym.Env):
             reward += float(r)
             success = max(success, float(mw_info["success"]))
             distance = min(distance, float(mw_info.get("obj_to_target", math.inf)))
+        reward += self.success_bonus * success
         self._t += 1
         self._mw_obs = mw_obs
         obs = self._observation(mw_obs)
@@ -439,6 +447,7 @@ def make_metaworld_task(
         camera_shift=float(getattr(env_cfg, "camera_shift", 0.0)),
         camera_shift_angle=float(getattr(env_cfg, "camera_shift_angle", 0.0)),
         action_repeat=int(getattr(env_cfg, "action_repeat", 1)),
+        success_bonus=float(getattr(env_cfg, "success_bonus", 0.0)),
     )
 
 
