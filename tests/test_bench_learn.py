@@ -170,22 +170,27 @@ def test_group_evaluation_is_deterministic_and_uses_distinct_states(one_torch_th
     assert first["distinct_initial_states"] == 16 and first["episodes_per_transform"] == 2
 
 
-def test_group_evaluation_counts_success_ever_reached_and_refuses_sampling_a_greedy_adapter():
+def _evaluate_standing_still(cfg, task, elements, action_dim):
+    """One GroupEvaluation pass (2 episodes per element) of a policy whose actions are all zero."""
     from covers_dist.evaluation.episodes import GreedyPolicy
-
-    cfg = load_config("configs/smoke.yaml", ["env.tasks=[reach]"])
-    evaluator = GroupEvaluation(cfg, "reach", ["e", "r"], episodes=2, seed=0)
 
     class Still:
         choose = staticmethod(lambda obs, gids: {"policy_id": 0, "decision": "only", "nearest_distance": None})
 
         def weights_map(self):
-            return {0: (0, GreedyPolicy(lambda obs: np.zeros((len(obs["image"]), 2), np.float32)))}
+            return {0: (0, GreedyPolicy(lambda obs: np.zeros((len(obs["image"]), action_dim), np.float32)))}
 
+    evaluator = GroupEvaluation(cfg, task, elements, episodes=2, seed=0)
     try:
-        still = evaluator.evaluate(Still())
+        return evaluator.evaluate(Still())
     finally:
         evaluator.close()
+
+
+def test_group_evaluation_counts_success_ever_reached_and_refuses_sampling_a_greedy_adapter():
+    from covers_dist.evaluation.episodes import GreedyPolicy
+
+    still = _evaluate_standing_still(load_config("configs/smoke.yaml", ["env.tasks=[reach]"]), "reach", ["e", "r"], 2)
     assert still["success"] == {"e": 0.0, "r": 0.0}  # standing still never reaches the goal
     assert still["ci95"]["e"][0] == 0.0 and 0.0 < still["ci95"]["e"][1] < 1.0
     assert still["misses"] == {}  # the toy tasks do not say how close an episode came
@@ -195,21 +200,9 @@ def test_group_evaluation_counts_success_ever_reached_and_refuses_sampling_a_gre
 
 def test_group_evaluation_on_meta_world_says_how_far_the_failures_stayed():
     from covers_dist.bench.learn import _misses_text
-    from covers_dist.evaluation.episodes import GreedyPolicy
 
     cfg = load_config("configs/stream_cpu.yaml", ["env.max_episode_steps=30"])
-    evaluator = GroupEvaluation(cfg, "reach-v3", ["e", "rf"], episodes=2, seed=0)
-
-    class Still:
-        choose = staticmethod(lambda obs, gids: {"policy_id": 0, "decision": "only", "nearest_distance": None})
-
-        def weights_map(self):
-            return {0: (0, GreedyPolicy(lambda obs: np.zeros((len(obs["image"]), 4), np.float32)))}
-
-    try:
-        still = evaluator.evaluate(Still())
-    finally:
-        evaluator.close()
+    still = _evaluate_standing_still(cfg, "reach-v3", ["e", "rf"], 4)
     assert still["success"] == {"e": 0.0, "rf": 0.0}
     assert sorted(still["misses"]) == ["e", "rf"]
     for miss in still["misses"].values():  # a still hand starts ~0.2-0.3 m from a goal of radius 0.05
