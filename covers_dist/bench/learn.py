@@ -489,7 +489,7 @@ def race(
             "success": out["success"],
             "ci95": out["ci95"],
             "pooled": out["pooled"],  # every transform's episodes together: the mean's n and interval
-            "misses": out["misses"],
+            "misses": out.get("misses", {}),  # an evaluator whose envs say how close episodes came
             "episodes_per_transform": out["episodes_per_transform"],
             "distinct_initial_states": out["distinct_initial_states"],
             "policy": out["policy"],
@@ -510,7 +510,7 @@ def race(
             f"learn {name}: {steps} env steps, {train_s:.1f} s training ({rate:.0f} steps/s), success min "
             f"{point['min_success']:.2f} mean {point['mean_success']:.2f} on {point['distinct_initial_states']} "
             f"initial states ({point['episodes_per_transform']} per transform; eval {spent:.1f} s), "
-            f"{_misses_text(out['misses'])}{streak} in a row >= {threshold}; {eta_txt}"
+            f"{_misses_text(point['misses'])}{streak} in a row >= {threshold}; {eta_txt}"
         )
         return point
 
