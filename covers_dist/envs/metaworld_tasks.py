@@ -87,8 +87,8 @@ def register_task(
 
     ``goal_z``: hold the goal's height at this world z (metres) at every reset (see
     :class:`MetaWorldTaskSpec`). ``success_radius``: Meta-World's success threshold on
-    ``obj_to_target`` (metres), for the per-step ``info["target_ratio"]``. ``success_state``: the positions besides the hand that decide
-    success, a subset of :data:`SUCCESS_STATE_KEYS`.
+    ``obj_to_target`` (metres), for the per-step ``info["target_ratio"]``. ``success_state``: the
+    positions besides the hand that decide success, a subset of :data:`SUCCESS_STATE_KEYS`.
     """
     known = _all_v3_envs()
     if not isinstance(name, str) or name not in known:
@@ -104,7 +104,8 @@ def register_task(
             f"success_state must name distinct positions out of {SUCCESS_STATE_KEYS}, got {success_state!r}"
         )
     if success_radius is not None:
-        if isinstance(success_radius, bool) or not isinstance(success_radius, (int, float)) or not 0 < success_radius < math.inf:
+        number = isinstance(success_radius, (int, float)) and not isinstance(success_radius, bool)
+        if not number or not 0 < success_radius < math.inf:
             raise ValueError(f"success_radius must be a positive distance in metres or None, got {success_radius!r}")
         success_radius = float(success_radius)
     spec = MetaWorldTaskSpec(
