@@ -13,7 +13,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["PolicyWeights", "CompletedUpdate"]
+__all__ = ["PolicyWeights", "CompletedUpdate", "SubmittedUpdate"]
+
+
+@dataclass(frozen=True)
+class SubmittedUpdate:
+    """An update running on its learner: the backend's handle of it, and the batch it trains on
+    (``batch_policy``, ``batch_iteration``), which its statistics will name."""
+
+    future: Any
+    batch: dict[str, int]
 
 
 @dataclass(frozen=True)
@@ -35,8 +44,7 @@ class PolicyWeights:
         self.versions: dict[int, int] = {}  # policy -> version of its published weights
         self.handles: dict[int, Any] = {}  # policy -> object-store handle of those weights
         self.learner_versions: dict[int, int] = {}  # each learner's version once its submitted updates are done
-        self.pending: tuple[int, Any] | None = None  # (policy id, submitted update or CompletedUpdate)
-        self.pending_batch: dict[str, int] = {}  # which batch the pending update trains on (its statistics say)
+        self.pending: tuple[int, SubmittedUpdate | CompletedUpdate] | None = None  # (policy id, update)
 
     # ---- publishing --------------------------------------------------------------------------
     def published(self) -> dict[int, tuple[int, Any]]:
@@ -76,8 +84,8 @@ class PolicyWeights:
         (``batch_iteration``, ``batch_policy``), so a pipelined row, which reports the previous
         iteration's update, says whose it is."""
         base = self.learner_versions[policy_id]  # a retried update from this version is applied once
-        self.pending = (policy_id, self.backend.submit_update(policy_id, episodes, base))
-        self.pending_batch = {"batch_policy": policy_id, "batch_iteration": iteration}
+        future = self.backend.submit_update(policy_id, episodes, base)
+        self.pending = (policy_id, SubmittedUpdate(future, {"batch_policy": policy_id, "batch_iteration": iteration}))
         self.learner_versions[policy_id] = base + 1
 
     def complete_pending(self) -> tuple[int, dict[str, Any], Any] | None:
@@ -85,9 +93,9 @@ class PolicyWeights:
         if self.pending is None:
             return None
         policy_id, update = self.pending
-        if not isinstance(update, CompletedUpdate):
-            stats, handle = self.backend.collect_update(update)
-            update = CompletedUpdate({**stats, **self.pending_batch}, handle)
+        if isinstance(update, SubmittedUpdate):
+            stats, handle = self.backend.collect_update(update.future)
+            update = CompletedUpdate({**stats, **update.batch}, handle)
             self.pending = (policy_id, update)
         return policy_id, update.stats, update.handle
 
