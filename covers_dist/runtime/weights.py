@@ -18,11 +18,12 @@ __all__ = ["PolicyWeights", "CompletedUpdate", "SubmittedUpdate"]
 
 @dataclass(frozen=True)
 class SubmittedUpdate:
-    """An update running on its learner: the backend's handle of it, and the batch it trains on
-    (``batch_policy``, ``batch_iteration``), which its statistics will name."""
+    """An update running on its learner: the backend's handle of it, and the iteration whose batch
+    it trains on (its statistics will name it, with the policy, as ``batch_iteration`` and
+    ``batch_policy``)."""
 
     future: Any
-    batch: dict[str, int]
+    iteration: int
 
 
 @dataclass(frozen=True)
@@ -84,8 +85,7 @@ class PolicyWeights:
         (``batch_iteration``, ``batch_policy``), so a pipelined row, which reports the previous
         iteration's update, says whose it is."""
         base = self.learner_versions[policy_id]  # a retried update from this version is applied once
-        future = self.backend.submit_update(policy_id, episodes, base)
-        self.pending = (policy_id, SubmittedUpdate(future, {"batch_policy": policy_id, "batch_iteration": iteration}))
+        self.pending = (policy_id, SubmittedUpdate(self.backend.submit_update(policy_id, episodes, base), iteration))
         self.learner_versions[policy_id] = base + 1
 
     def complete_pending(self) -> tuple[int, dict[str, Any], Any] | None:
@@ -95,7 +95,8 @@ class PolicyWeights:
         policy_id, update = self.pending
         if isinstance(update, SubmittedUpdate):
             stats, handle = self.backend.collect_update(update.future)
-            update = CompletedUpdate({**stats, **update.batch}, handle)
+            batch = {"batch_policy": policy_id, "batch_iteration": update.iteration}
+            update = CompletedUpdate({**stats, **batch}, handle)
             self.pending = (policy_id, update)
         return policy_id, update.stats, update.handle
 
