@@ -4,7 +4,9 @@ In one run, on one machine, each setting on a fresh local Ray instance:
 
 * ``covers_1w`` / ``covers_2w``: the whole loop on the given config with 1 and 2 rollout workers
   (pipelined, the default); ``covers_2w_sequential``: the same with ``runtime.pipeline=false``;
-  ``covers_cnn_2w``: the loop with the CNN twin (COVERS-CNN);
+  ``covers_cnn_2w``: the loop with the CNN twin (COVERS-CNN: its features are not invariant, so
+  the bank makes a policy, and starts a learner, for each new copy of the table); ``cnn_2w``: the
+  loop with one CNN-twin policy for the whole stream (the CNN baseline: one network, as RLlib);
 * ``rllib_ppo``: RLlib's PPO (new API stack) on the same base task and image size with RLlib's
   default CNN on the image alone; ``rllib_same_net_cnn`` / ``rllib_same_net_equivariant``: RLlib's
   PPO training covers-dist's own network (CNN twin / equivariant) through the RLModule adapter
@@ -13,7 +15,10 @@ In one run, on one machine, each setting on a fresh local Ray instance:
 RLlib samples with the same number of env runners and envs per runner, one train batch is one
 covers-dist iteration, with the same epochs, minibatch and learning rate. Also reported: the
 sampling phase's speed-up from 1 to 2 workers, the peak resident memory of all processes of a
-run (driver + every Ray process, sampled every 0.2 s), and the ratios the targets name.
+run (driver + every Ray process, sampled every 0.2 s), the seconds per iteration of each phase of
+the loop, the policies the bank created inside the measured window with the seconds their starts
+took (a new policy's learner and first weights, inside the ``assign`` phase), and the ratios the
+targets name.
 
 Targets (reported, not asserted): equivariant loop >= 1.0x RLlib's default-CNN PPO; CNN-twin
 loop >= 2x RLlib on the same network; 2 workers > 1 worker end to end; peak memory <= 4 GiB.
@@ -108,12 +113,21 @@ def _covers(
     init_ray(cfg.runtime.num_cpus, address)
     session_dir = ray._private.worker.global_worker.node.get_session_dir_path()
     trainer = Trainer(cfg, log=lambda *_: None)
+    starts: list[float] = []  # seconds of each policy start (learner + first weights) in the window
+    start_policy = trainer.start_policy
+
+    def timed_start(policy_id: int) -> None:
+        t = time.perf_counter()
+        start_policy(policy_id)
+        starts.append(time.perf_counter() - t)
+
     try:
         with PeakMemory(str(Path(session_dir).parent)) as mem:
             trainer.start_policy(0)
             for _ in range(warmup):
                 trainer.step()
             trainer.drain()  # the window holds exactly its own iterations' sampling and updates
+            trainer.start_policy = timed_start  # type: ignore[method-assign]  # the bank's new policies
             steps0, t0, phases = trainer.env_steps, time.perf_counter(), {}
             for _ in range(iters):
                 trainer.phase_time.clear()
@@ -124,6 +138,7 @@ def _covers(
             elapsed = time.perf_counter() - t0
             sample_s = phases["sample"]
             steps = trainer.env_steps - steps0
+            policies = len(trainer.weights.versions)
     finally:
         trainer.close()
         shutdown_ray()
@@ -135,6 +150,10 @@ def _covers(
         "env_steps": steps,
         # the update's own time beside (pipelined) or after (sequential) the sampling
         "update_s_per_iter": (phases.get("update_submit", 0.0) + phases.get("update_wait", 0.0)) / iters,
+        # policies the bank created inside the window and the seconds their starts took (part of `assign`)
+        "policies_created": len(starts),
+        "policy_start_s_per_iter": sum(starts) / iters,
+        "policies": policies,
         **{f"phase_{name}_s": secs / iters for name, secs in phases.items()},
     }
 
@@ -166,6 +185,9 @@ COVERS_SETTINGS = {  # name: (rollout workers, overrides)
     "covers_2w": (2, []),
     "covers_2w_sequential": (2, ["runtime.pipeline=false"]),
     "covers_cnn_2w": (2, ["runtime.method=covers-cnn", "network.kind=cnn"]),
+    # one CNN-twin policy for the whole stream, as RLlib trains one network: the bank never creates
+    # another, so no learner starts inside the window (COVERS-CNN makes one per new copy of the table)
+    "cnn_2w": (2, ["runtime.method=cnn", "network.kind=cnn"]),
 }
 RLLIB_SETTINGS = {  # name: (network, overrides)
     "rllib_ppo": ("default", []),
@@ -202,7 +224,8 @@ def run(args: argparse.Namespace) -> int:
             if not args.json:
                 print(f"{name}: {r['env_steps_per_s']:.0f} env steps/s end to end, "
                       f"{r['sample_steps_per_s']:.0f} in sampling, peak RSS {r['peak_rss_gib']:.2f} GiB "
-                      f"over {r['processes']} processes", flush=True)
+                      f"over {r['processes']} processes; {r['policies_created']} policies created in the "
+                      f"window ({r['policy_start_s_per_iter']:.2f} s per iteration starting them)", flush=True)
         else:
             network, extra = RLLIB_SETTINGS[name]
             r = _rllib(args.config, [*args.overrides, *extra], args.iterations, args.warmup, network)
@@ -223,6 +246,7 @@ def run(args: argparse.Namespace) -> int:
         "covers_cnn_to_rllib": ("covers_cnn_2w", "rllib_ppo"),
         "covers_to_rllib_same_net": ("covers_2w", "rllib_same_net_equivariant"),
         "covers_cnn_to_rllib_same_net": ("covers_cnn_2w", "rllib_same_net_cnn"),
+        "cnn_to_rllib_same_net": ("cnn_2w", "rllib_same_net_cnn"),
     }
     for key, (a, b) in ratios.items():
         value = _ratio(out, a, b)

@@ -1,0 +1,38 @@
+"""``bench train``: its arguments, and the loop's settings on a local Ray instance."""
+
+import json
+
+import pytest
+
+from covers_dist.cli import main
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--settings", "covers_2w,nope"], "unknown setting(s) ['nope']"),
+        (["--iterations", "0"], "--iterations must be >= 1"),
+    ],
+)
+def test_bench_train_rejects_bad_arguments(argv, message):
+    with pytest.raises(SystemExit) as err:
+        main(["bench", "train", "--config", "configs/smoke.yaml", *argv])
+    assert message in str(err.value)
+
+
+@pytest.mark.bench
+def test_bench_train_counts_the_policies_each_cnn_setting_starts(capsys):
+    # a new (task, copy) every iteration: COVERS-CNN may create policies inside the window, the
+    # single-policy CNN loop never does
+    argv = ["bench", "train", "--config", "configs/smoke.yaml", "--settings", "covers_cnn_2w,cnn_2w", "--skip-rllib",
+            "--iterations", "2", "--warmup", "1", "--set", "env.max_episode_steps=20", "--set", "clustering.update_every=4",
+            "--set", "env.episodes_per_task=4", "--set", "ppo.minibatch_size=40", "--set", "runtime.envs_per_worker=2",
+            "--json"]  # fmt: skip
+    assert main(argv) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    single, bank = out["cnn_2w"], out["covers_cnn_2w"]
+    assert single["policies"] == 1 and single["policies_created"] == 0 and single["policy_start_s_per_iter"] == 0
+    assert bank["policies"] >= 1 + bank["policies_created"]  # policy 0 and the warm-up's, then the window's
+    assert (bank["policy_start_s_per_iter"] > 0) == (bank["policies_created"] > 0)
+    for r in (single, bank):
+        assert r["env_steps"] == 2 * 4 * 20 and r["phase_assign_s"] >= r["policy_start_s_per_iter"]
