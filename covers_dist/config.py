@@ -185,6 +185,11 @@ class PPOConfig:
         "the critic, docs/learning.md).",
     )
     ent_coef: float = _f(0.0, "Entropy bonus coefficient.", min=0.0)
+    ent_schedule: Literal["constant", "linear"] = _f(
+        "constant",
+        "Entropy-bonus schedule over updates: constant (ent_coef throughout) or linear (ent_coef at update 0 "
+        "falling to 0 at ppo.total_updates, 0 after): exploration early, none once the group is learned.",
+    )
     vf_coef: float = _f(0.5, "Value loss coefficient.", min=0.0)
     epochs: int = _f(4, "Optimization epochs per update.", min=1)
     minibatch_size: int = _f(256, "Samples per minibatch.", min=1)

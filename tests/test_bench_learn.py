@@ -70,6 +70,7 @@ def learn(capsys, monkeypatch):
         (["--eval-every", "0"], ["--eval-every", ">= 1"]),
         (["--keep-runs"], ["--keep-runs", "--out"]),
         (["--contenders", "covers,sb3", "--set", "ppo.log_std_cap=-1.0"], ["ppo.log_std_cap", "sb3"]),
+        (["--contenders", "covers,rllib-cnn", "--set", "ppo.ent_schedule=linear"], ["ppo.ent_schedule=linear", "rllib-cnn"]),
         (["--contenders", "covers,rllib-equi", "--set", "network.critic=separate"], ["network.critic", "rllib-equi"]),
     ],
 )

@@ -230,6 +230,34 @@ def test_linear_learning_rate_schedule():
     np.testing.assert_allclose(lrs, [1e-3, 7.5e-4, 5e-4, 2.5e-4, 0.0])
 
 
+def test_linear_entropy_schedule_falls_to_no_bonus():
+    model = make_model()
+    cfg = PPOConfig(minibatch_size=48, ent_coef=0.1, ent_schedule="linear", total_updates=2)
+    learner = PPOLearner(model, cfg)
+    episodes = make_episodes(model)
+    coefs = []
+    for _ in range(3):
+        coefs.append(learner.entropy_coef())
+        learner.update(episodes)
+    np.testing.assert_allclose(coefs, [0.1, 0.05, 0.0])
+    # past the horizon the update is the one without a bonus: same state, same episodes, same weights
+    plain = PPOLearner(make_model(seed=3), dataclasses.replace(cfg, ent_coef=0.0, ent_schedule="constant"))
+    plain.load_state_dict(learner.state_dict())
+    learner.update(episodes)
+    plain.update(episodes)
+    for a, b in zip(learner.model.parameters(), plain.model.parameters()):
+        assert torch.equal(a, b)
+    # while the bonus is on, it changes the update
+    fresh, other = make_model(), make_model()
+    on = PPOLearner(fresh, cfg)
+    off = PPOLearner(other, dataclasses.replace(cfg, ent_coef=0.0, ent_schedule="constant"))
+    on.update(episodes)
+    off.update(episodes)
+    assert not all(torch.equal(a, b) for a, b in zip(fresh.parameters(), other.parameters()))
+    with pytest.raises(ValueError, match="ppo.ent_schedule=linear needs ppo.total_updates"):
+        PPOLearner(make_model(), PPOConfig(ent_coef=0.1, ent_schedule="linear", total_updates=None))
+
+
 def test_a_null_horizon_is_the_runs_length_in_updates():
     from covers_dist.config import load_config
 

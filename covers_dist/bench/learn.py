@@ -353,6 +353,7 @@ class _CoversContender:
             "rollout_workers": cfg.runtime.num_workers,
             "envs_per_worker": cfg.runtime.envs_per_worker,
             **({} if cfg.ppo.log_std_cap is None else {"log_std_cap": float(cfg.ppo.log_std_cap)}),
+            **({} if cfg.ppo.ent_schedule == "constant" else {"ent_schedule": cfg.ppo.ent_schedule}),
         }
 
     def close(self) -> None:
@@ -907,6 +908,7 @@ def run(args: argparse.Namespace) -> int:
     peers = [n for n in chosen if n in PEERS]
     own = [f"ppo.log_std_cap={cfg0.ppo.log_std_cap}"] * (cfg0.ppo.log_std_cap is not None)
     own += [f"network.critic={cfg0.network.critic}"] * (cfg0.network.critic != "shared")
+    own += [f"ppo.ent_schedule={cfg0.ppo.ent_schedule}"] * (cfg0.ppo.ent_schedule != "constant")
     if own and peers:
         _fail(
             f"{', '.join(own)}: covers-dist's contenders only; the peers {peers} would train without it. "

@@ -15,7 +15,8 @@ whose approximate KL to the behaviour policy exceeds it (that minibatch is not a
 
 The learning rate follows ``lr_schedule``: constant, or linear from ``lr`` at update 0 to 0 at
 update ``total_updates`` (and 0 after; a run's learners get ``Config.learner_ppo``, where a null
-``total_updates`` is the run's length in updates). With ``log_std_cap`` set, after each update the
+``total_updates`` is the run's length in updates); the entropy bonus follows ``ent_schedule`` on
+the same ramp (``ent_coef`` falling to 0 at ``total_updates``). With ``log_std_cap`` set, after each update the
 model's learned log standard deviation is clipped to at most :func:`log_std_cap_at` of the update
 count: a bound falling linearly from the value the model started with to ``log_std_cap`` at
 ``total_updates`` (the rollout workers get the clipped value with the weights, so every episode is
@@ -212,7 +213,11 @@ class PPOLearner:
     def __init__(self, model: torch.nn.Module, ppo_cfg: PPOConfig, seed: int = 0) -> None:
         if not isinstance(ppo_cfg, PPOConfig):
             raise TypeError(f"ppo_cfg must be a PPOConfig, got {type(ppo_cfg).__name__}")
-        schedules = (("ppo.lr_schedule=linear", ppo_cfg.lr_schedule == "linear"), ("ppo.log_std_cap", ppo_cfg.log_std_cap is not None))
+        schedules = (
+            ("ppo.lr_schedule=linear", ppo_cfg.lr_schedule == "linear"),
+            ("ppo.ent_schedule=linear", ppo_cfg.ent_schedule == "linear"),
+            ("ppo.log_std_cap", ppo_cfg.log_std_cap is not None),
+        )
         for schedule, on in schedules:
             if on and ppo_cfg.total_updates is None:
                 raise ValueError(
@@ -241,6 +246,10 @@ class PPOLearner:
     def learning_rate(self) -> float:
         """The learning rate the next update will use."""
         return scheduled_learning_rate(self.cfg.lr, self.cfg.lr_schedule, self.update_count, self.cfg.total_updates)
+
+    def entropy_coef(self) -> float:
+        """The entropy-bonus coefficient the next update will use (``ent_schedule``, the same ramp as the rate)."""
+        return scheduled_learning_rate(self.cfg.ent_coef, self.cfg.ent_schedule, self.update_count, self.cfg.total_updates)
 
     @torch.no_grad()
     def reevaluate(self, episodes: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -303,6 +312,7 @@ class PPOLearner:
         scale = cfg.reward_scale if self.return_norm is None else cfg.reward_scale / self.return_norm.std
         n = batch["action"].shape[0]
         lr = self.learning_rate()
+        ent_coef = self.entropy_coef()
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         params = [p for p in self.model.parameters() if p.requires_grad]
@@ -329,7 +339,7 @@ class PPOLearner:
                 terms = ppo_loss(
                     logp, batch["logprob"][idx], normalize_advantages(adv) if cfg.norm_adv else adv,
                     values, batch["value"][idx], batch["ret"][idx], entropy,
-                    cfg.clip_coef, cfg.vf_clip_coef, cfg.ent_coef, cfg.vf_coef,
+                    cfg.clip_coef, cfg.vf_clip_coef, ent_coef, cfg.vf_coef,
                     mean=mean, bound_coef=cfg.bound_coef,
                 )  # fmt: skip
                 processed += len(idx)
