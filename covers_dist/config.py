@@ -334,6 +334,14 @@ class RuntimeConfig:
     learner_num_cpus: float = _f(
         0.0, "CPUs reserved by each learner actor on Ray (0: none, it shares the workers' cores).", min=0.0
     )
+    learners_per_process: int = _f(
+        1,
+        "Policies whose learners share one learner process on Ray: process k hosts policies k*n .. k*n+n-1, "
+        "each learner built when its policy first needs it. Fewer processes (memory, process starts) at the "
+        "price of one process's updates running one after another (a stream trains one group at a time). "
+        "runtime.learner_num_cpus and runtime.num_gpus are then per process. 1: one process per policy.",
+        min=1,
+    )
     learner_ahead: bool = _f(
         True,
         "Start the next policy's learner actor before the bank creates that policy, so its start-up overlaps "

@@ -20,8 +20,15 @@ def test_the_paper_config_fits_the_manifests_cluster_and_a_whole_gpu_per_learner
     assert learners_needed(cfg) == len(cfg.env.tasks) + 1 == 5  # four groups and the learner started ahead
     check_fits(cfg, CLUSTER)  # 0.2 GPU per learner: five share the one GPU
     whole = load_config(PAPER, ["runtime.num_gpus=1"])
-    with pytest.raises(ClusterTooSmall, match=r"needs 5 learners.*1 GPU.*set runtime.num_gpus to 0.2 or less"):
+    with pytest.raises(ClusterTooSmall, match=r"needs 5 learner processes.*1 GPU.*set runtime.num_gpus to 0.2 or less"):
         check_fits(whole, CLUSTER)
+    shared = load_config(PAPER, ["runtime.num_gpus=1", "runtime.learners_per_process=5"])
+    assert learners_needed(shared) == 1
+    check_fits(shared, CLUSTER)  # the five learners in one process: that process takes the one GPU
+    halves = load_config(PAPER, ["runtime.num_gpus=1", "runtime.learners_per_process=3"])
+    assert learners_needed(halves) == 2  # policies 0-2 and 3-4
+    with pytest.raises(ClusterTooSmall, match=r"needs 2 learner processes.*3 policies per learner process"):
+        check_fits(halves, CLUSTER)
     check_fits(whole, [*CLUSTER, {"CPU": 4, "GPU": 4}])  # or more GPUs
     single = load_config(PAPER, ["runtime.num_gpus=1", "runtime.method=equi"])
     assert learners_needed(single) == 1

@@ -184,13 +184,17 @@ def _wait_for_new_pid(run_dir, role, old_pid, timeout_s=90):
 
 
 @pytest.mark.slow
-def test_learner_killed_during_updates_ends_where_the_clean_run_ends(ray_local, tiny_serial_run, tmp_path):
+@pytest.mark.parametrize("per_process", [1, 8])
+def test_learner_killed_during_updates_ends_where_the_clean_run_ends(ray_local, tiny_serial_run, tmp_path, per_process):
     """Two SIGKILLs of a learner actor mid-update on Ray; the run ends with the serial run's
-    assignments and weights, one version per update. Slow tier: in the default suite the chaos test
-    kills a learner (and every other kind) and compares with the clean run, and the tests above
-    cover each point of a learner's death deterministically, in process."""
+    assignments and weights, one version per update. With ``runtime.learners_per_process=8`` the
+    killed process hosts every policy's learner, and each comes back from its own live state. Slow
+    tier: in the default suite the chaos test kills a learner (and every other kind) and compares
+    with the clean run, and the tests above cover each point of a learner's death deterministically,
+    in process."""
     serial = tiny_serial_run[:2]  # the clean run: the same config and 1600 env steps, serial
-    cfg = tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false")
+    cfg = tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false",
+                   f"runtime.learners_per_process={per_process}")  # fmt: skip
     trainer = Trainer(cfg, log=lambda *_: None)
     trainer.start_policy(0)
     kills = 0

@@ -88,3 +88,26 @@ def test_ray_pipelined_run_equals_the_serial_pipelined_run(ray_local, tiny_seria
     distributed = _run(tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false"))
     assert distributed[0] == serial[0]
     _same_weights(distributed[1], serial[1])
+
+
+def test_policies_sharing_one_learner_process_train_as_with_a_process_each(ray_local, tiny_serial_run, tmp_path):
+    """runtime.learners_per_process: every policy's learner in one Ray process (the one started ahead
+    too); the run ends with the serial run's assignments and weights, and one learner process was
+    recorded where the default starts one per policy."""
+    from covers_dist.runtime.processes import list_processes
+
+    serial = tiny_serial_run[:2]
+    assert len(serial[1]) >= 2  # the tiny stream makes more than one policy: the process is shared
+    cfg = tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false",
+                   "runtime.learners_per_process=8", "runtime.learner_ahead=true")  # fmt: skip
+    trainer = Trainer(cfg, log=lambda *_: None)
+    trainer.run()
+    assert trainer.backend.learner_processes() == 1
+    assert trainer.backend.spare_learners() == [max(trainer.weights.versions) + 1]
+    weights = {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.weights.versions)}
+    shared = (assignments(trainer), weights)
+    trainer.close()
+    assert shared[0] == serial[0]
+    _same_weights(shared[1], serial[1])
+    learners = [p for p in list_processes(tmp_path / "r") if p["role"] == "learner"]
+    assert [p["index"] for p in learners] == [0]

@@ -4,9 +4,12 @@ In one run, on one machine, each setting on a fresh local Ray instance:
 
 * ``covers_1w`` / ``covers_2w``: the whole loop on the given config with 1 and 2 rollout workers
   (pipelined, the default); ``covers_2w_sequential``: the same with ``runtime.pipeline=false``;
-  ``covers_cnn_2w``: the loop with the CNN twin (COVERS-CNN: its features are not invariant, so
-  the bank makes a policy, and starts a learner, for each new copy of the table); ``cnn_2w``: the
-  loop with one CNN-twin policy for the whole stream (the CNN baseline: one network, as RLlib);
+  ``covers_2w_shared``: the same with every policy's learner in one process
+  (``runtime.learners_per_process``); ``covers_cnn_2w``: the loop with the CNN twin (COVERS-CNN:
+  its features are not invariant, so the bank makes a policy, and starts a learner, for each new
+  copy of the table); ``covers_cnn_2w_shared``: the same with every learner in one process;
+  ``cnn_2w``: the loop with one CNN-twin policy for the whole stream (the CNN baseline: one
+  network, as RLlib);
 * ``rllib_ppo``: RLlib's PPO (new API stack) on the same base task and image size with RLlib's
   default CNN on the image alone; ``rllib_same_net_cnn`` / ``rllib_same_net_equivariant``: RLlib's
   PPO training covers-dist's own network (CNN twin / equivariant) through the RLModule adapter
@@ -17,8 +20,10 @@ covers-dist iteration, with the same epochs, minibatch and learning rate. Also r
 sampling phase's speed-up from 1 to 2 workers, the peak resident memory of all processes of a
 run (driver + every Ray process, sampled every 0.2 s), the seconds per iteration of each phase of
 the loop, the policies the bank created inside the measured window with the seconds their starts
-took (a new policy's learner and first weights, inside the ``assign`` phase), and the ratios the
-targets name.
+took (a new policy's learner and first weights, inside the ``assign`` phase), the learner processes
+the run started, and the ratios the targets name (``shared_learner_memory`` / ``_speed``: one
+learner process for every policy against one each, equivariant; ``cnn_shared_learner_*``: the same
+for COVERS-CNN).
 
 Targets (reported, not asserted): equivariant loop >= 1.0x RLlib's default-CNN PPO; CNN-twin
 loop >= 2x RLlib on the same network; 2 workers > 1 worker end to end; peak memory <= 4 GiB.
@@ -139,6 +144,7 @@ def _covers(
             sample_s = phases["sample"]
             steps = trainer.env_steps - steps0
             policies = len(trainer.weights.versions)
+            learner_processes = trainer.backend.learner_processes()
     finally:
         trainer.close()
         shutdown_ray()
@@ -154,6 +160,7 @@ def _covers(
         "policies_created": len(starts),
         "policy_start_s_per_iter": sum(starts) / iters,
         "policies": policies,
+        "learner_processes": learner_processes,  # started in the whole run (the one started ahead included)
         **{f"phase_{name}_s": secs / iters for name, secs in phases.items()},
     }
 
@@ -184,7 +191,13 @@ COVERS_SETTINGS = {  # name: (rollout workers, overrides)
     "covers_1w": (1, []),
     "covers_2w": (2, []),
     "covers_2w_sequential": (2, ["runtime.pipeline=false"]),
+    # every policy's learner in one process (runtime.learners_per_process): a new policy costs a
+    # network build in that process, not a process start, and no idle process waits ahead
+    "covers_2w_shared": (2, ["runtime.learners_per_process=64"]),
     "covers_cnn_2w": (2, ["runtime.method=covers-cnn", "network.kind=cnn"]),
+    # the same with every policy's learner in one process (runtime.learners_per_process): a new
+    # policy costs a network build in that process, not a process start
+    "covers_cnn_2w_shared": (2, ["runtime.method=covers-cnn", "network.kind=cnn", "runtime.learners_per_process=64"]),
     # one CNN-twin policy for the whole stream, as RLlib trains one network: the bank never creates
     # another, so no learner starts inside the window (COVERS-CNN makes one per new copy of the table)
     "cnn_2w": (2, ["runtime.method=cnn", "network.kind=cnn"]),
@@ -193,6 +206,13 @@ RLLIB_SETTINGS = {  # name: (network, overrides)
     "rllib_ppo": ("default", []),
     "rllib_same_net_cnn": ("covers", ["runtime.method=covers-cnn", "network.kind=cnn"]),
     "rllib_same_net_equivariant": ("covers", []),
+}
+
+
+#: shared learner process against one per policy: peak memory and end-to-end speed ratios
+SHARED_PAIRS = {
+    "shared_learner": ("covers_2w_shared", "covers_2w"),
+    "cnn_shared_learner": ("covers_cnn_2w_shared", "covers_cnn_2w"),
 }
 
 
@@ -225,7 +245,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{name}: {r['env_steps_per_s']:.0f} env steps/s end to end, "
                       f"{r['sample_steps_per_s']:.0f} in sampling, peak RSS {r['peak_rss_gib']:.2f} GiB "
                       f"over {r['processes']} processes; {r['policies_created']} policies created in the "
-                      f"window ({r['policy_start_s_per_iter']:.2f} s per iteration starting them)", flush=True)
+                      f"window ({r['policy_start_s_per_iter']:.2f} s per iteration starting them), "
+                      f"{r['learner_processes']} learner processes", flush=True)
         else:
             network, extra = RLLIB_SETTINGS[name]
             r = _rllib(args.config, [*args.overrides, *extra], args.iterations, args.warmup, network)
@@ -239,6 +260,10 @@ def run(args: argparse.Namespace) -> int:
     rss = [v["peak_rss_gib"] for k, v in out.items() if isinstance(v, dict) and "peak_rss_gib" in v]
     if rss:
         out["peak_rss_gib"] = max(rss)
+    for key, (a, b) in SHARED_PAIRS.items():  # one learner process against one per policy
+        if a in out and b in out:
+            out[f"{key}_memory"] = round(out[a]["peak_rss_gib"] / out[b]["peak_rss_gib"], 3)
+            out[f"{key}_speed"] = _ratio(out, a, b)
     ratios = {
         "end_to_end_2w_vs_1w": ("covers_2w", "covers_1w"),
         "pipeline_vs_sequential": ("covers_2w", "covers_2w_sequential"),

@@ -5,8 +5,10 @@
   episode index), so nothing is lost or doubled;
 * the clustering actor: named ``covers-clustering-<run name>`` in namespace ``covers-dist``, no CPU reserved (it is light),
   restarted from its persisted state, with assignments made idempotent by iteration number;
-* learners: one per policy, on a GPU when ``runtime.num_gpus > 0``, restarted with the
-  policy's state after its newest update (see :mod:`.learner`); a retried update is applied once;
+* learner processes: one per policy, or one per ``runtime.learners_per_process`` policies (process k
+  hosts policies k*n .. k*n+n-1, recorded as ``learner-k``), on a GPU when ``runtime.num_gpus > 0``,
+  restarted with each policy's state after its newest update (see :mod:`.learner`); a retried update
+  is applied once;
 * evaluation workers: rollout workers that run evaluation episodes (``eval.num_cpus`` each).
 
 Every actor records its PID in ``processes/`` of the run's storage when it starts (:mod:`.processes`).
@@ -20,7 +22,7 @@ import ray
 
 from ..config import Config
 from .clustering_service import ClusteringService
-from .learner import PolicyLearner
+from .learner import LearnerPool
 from .processes import announce
 from .run_storage import check_reachable, storage_location
 from .rollout import EVAL_WORKER_INDEX, RolloutWorker, split_first_frames
@@ -63,14 +65,14 @@ class _RolloutHost(RolloutWorker):
         return os.getpid()
 
 
-class _LearnerHost(PolicyLearner):
+class _LearnerHost(LearnerPool):
     def __init__(
-        self, cfg: Config, policy_id: int, device: str | None = None, storage: str | None = None, run_token: str | None = None
+        self, cfg: Config, index: int, device: str | None = None, storage: str | None = None, run_token: str | None = None
     ) -> None:
-        check_reachable(storage or "", run_token, f"the learner of policy {policy_id}")
+        check_reachable(storage or "", run_token, f"learner process {index}")
         _lower_priority(cfg)
-        super().__init__(cfg, policy_id, device, storage)
-        _announce(storage, "learner", policy_id)
+        super().__init__(cfg, index, device, storage)
+        _announce(storage, "learner", index)
 
 
 class _ClusteringHost(ClusteringService):

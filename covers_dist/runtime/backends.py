@@ -15,6 +15,7 @@ import numpy as np
 from ..config import Config
 from ..models.checks import check_same_function
 from .placement import check_fits
+from .learner import pool_of
 from .rollout import EVAL_WORKER_INDEX, EpisodeSpec, merge_first_frames, split_first_frames, training_seeds
 from .run_storage import mark_run, storage_location
 
@@ -115,7 +116,8 @@ class SerialBackend:
 
 
 class RayBackend:
-    """Rollout workers, the named clustering actor and one learner actor per policy, on Ray."""
+    """Rollout workers, the named clustering actor and the learner processes (one per policy, or one
+    per ``runtime.learners_per_process`` policies), on Ray."""
 
     name = "ray"
 
@@ -135,8 +137,9 @@ class RayBackend:
             rollout_actor(cfg).remote(cfg, i, self.storage, self.run_token) for i in range(cfg.runtime.num_workers)
         ]
         self.clustering = clustering_actor(cfg, self.storage, self.run_token)
-        self.learners: dict[int, Any] = {}
-        self._spare: dict[int, Any] = {}  # learners started ahead of their policy (prepare_learner)
+        self.learners: dict[int, Any] = {}  # policy id -> the learner process (actor) hosting it
+        self._pools: dict[int, Any] = {}  # learner process index -> actor (runtime.learners_per_process)
+        self._spare: set[int] = set()  # policies whose learner was started ahead (prepare_learner)
         self._eval: RayEvalExecutors | None = None
         self._probes: dict[str, Any] = {}
         actors = {f"rollout worker {i}": w for i, w in enumerate(self.workers)}
@@ -162,7 +165,7 @@ class RayBackend:
         ]
 
     def submit_update(self, policy_id: int, episodes: Any, base_version: int) -> Any:
-        return self.learners[policy_id].update.options(num_returns=3).remote(episodes, base_version)
+        return self.learners[policy_id].update.options(num_returns=3).remote(policy_id, episodes, base_version)
 
     def collect_update(self, pending: Any) -> tuple[dict[str, Any], Any]:
         """Waits for the statistics only: the new weights stay in the object store, and their
@@ -197,20 +200,24 @@ class RayBackend:
 
     def ensure_learner(self, policy_id: int) -> None:
         if policy_id not in self.learners:
-            spare = self._spare.pop(policy_id, None)
-            learner = spare if spare is not None else self._new_learner(policy_id)
-            self._check_probes({f"learner of policy {policy_id}": learner})
-            self.learners[policy_id] = learner
+            self._spare.discard(policy_id)
+            pool = self._pool(policy_id)
+            probe = self.ray.get(pool.probe.remote(policy_id))  # builds the learner if not started ahead
+            self._probes[f"learner of policy {policy_id}"] = probe
+            check_same_function(self._probes)
+            self.learners[policy_id] = pool
 
     def prepare_learner(self, policy_id: int) -> None:
-        """Start the learner actor of the policy the bank would create next, in the background.
+        """Start the learner of the policy the bank would create next, in the background.
 
-        A learner's process start, imports and escnn network build take seconds (measured ~10 s on
+        A learner process's start, imports and escnn network build take seconds (measured ~10 s on
         2 busy cores); started ahead, they overlap training instead of stalling the iteration that
         creates the policy. Its weights are seeded by the policy id alone, so nothing else changes.
+        In a shared learner process (``runtime.learners_per_process``) only the network is built.
         """
         if policy_id not in self.learners and policy_id not in self._spare:
-            self._spare[policy_id] = self._new_learner(policy_id)
+            self._pool(policy_id).prepare.remote(policy_id)
+            self._spare.add(policy_id)
 
     def spare_learners(self) -> list[int]:
         """Policy ids whose learner was started ahead and has no policy yet (``runtime.learner_ahead``)."""
@@ -220,12 +227,20 @@ class RayBackend:
         """The network's probe outputs in this run's processes (saved with each checkpoint)."""
         return next(iter(self._probes.values()))
 
-    def _new_learner(self, policy_id: int) -> Any:
-        """A learner actor that persists its state after every update (a restart reloads it)."""
-        return self._learner_cls.remote(self.cfg, policy_id, None, self.storage, self.run_token)
+    def _pool(self, policy_id: int) -> Any:
+        """The learner process hosting ``policy_id``, started if it is not running yet; its learners
+        persist their state after every update (a restarted process reloads it)."""
+        index = pool_of(policy_id, self.cfg.runtime.learners_per_process)
+        if index not in self._pools:
+            self._pools[index] = self._learner_cls.remote(self.cfg, index, None, self.storage, self.run_token)
+        return self._pools[index]
+
+    def learner_processes(self) -> int:
+        """Learner processes started so far."""
+        return len(self._pools)
 
     def call_learner(self, policy_id: int, method: str, *args: Any) -> Any:
-        return self.ray.get(getattr(self.learners[policy_id], method).remote(*args))
+        return self.ray.get(self.learners[policy_id].call.remote(policy_id, method, *args))
 
     def eval_executors(self) -> "RayEvalExecutors":
         if self._eval is None:
@@ -235,7 +250,7 @@ class RayBackend:
 
     def shutdown(self) -> None:
         evals = self._eval.actors if self._eval is not None else []
-        for actor in [*self.workers, *self.learners.values(), *self._spare.values(), self.clustering, *evals]:
+        for actor in [*self.workers, *self._pools.values(), self.clustering, *evals]:
             try:
                 self.ray.kill(actor, no_restart=True)
             except Exception:  # noqa: BLE001 - already gone

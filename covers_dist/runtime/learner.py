@@ -1,9 +1,11 @@
 """The learner: PPO updates of one policy, keeping its optimizer state across visits.
 
-A plain class; :mod:`covers_dist.runtime.actors` makes it a Ray actor (one per policy, created
-when the clustering creates the policy). Weights leave the learner as CPU state dicts in the
-model's documented mode (see :meth:`covers_dist.models` ``get_weights``), tagged with a version
-that increases by one per update, so workers pull them only when they changed.
+A plain class; :mod:`covers_dist.runtime.actors` makes a :class:`LearnerPool` of them a Ray actor
+(by default one policy per process, created when the clustering creates the policy;
+``runtime.learners_per_process`` puts several policies' learners in one process). Weights leave
+the learner as CPU state dicts in the model's documented mode (see :meth:`covers_dist.models`
+``get_weights``), tagged with a version that increases by one per update, so workers pull them
+only when they changed.
 
 Surviving a crash (``storage`` given, as on Ray): after every update the learner writes its whole
 state (weights, Adam moments, schedule counters, shuffling RNG, version) and the result of its
@@ -33,7 +35,7 @@ from ..ppo import PPOLearner
 from ..storage import StorageError
 from .run_storage import LEARNERS_LIVE, open_storage
 
-__all__ = ["PolicyLearner", "policy_seed", "live_state_key"]
+__all__ = ["PolicyLearner", "LearnerPool", "policy_seed", "live_state_key", "pool_of"]
 #: Results kept for retried updates: the newest one and the one before (pipelined loop: the
 #: weights workers sample with and the update still in flight).
 KEEP_RESULTS = 2
@@ -171,6 +173,61 @@ class PolicyLearner:
             raise ValueError(f"learner state is for policy {state.get('policy_id')}, not {self.policy_id}")
         self.ppo.load_state_dict(state["ppo"])
         self.version = int(state["version"])
+
+
+def pool_of(policy_id: int, per_process: int) -> int:
+    """The learner process (pool) that hosts ``policy_id`` when ``per_process`` policies share one."""
+    return int(policy_id) // int(per_process)
+
+
+class LearnerPool:
+    """The learners of policies ``index * n .. index * n + n - 1`` (``n``: ``runtime.learners_per_process``)
+    in one process.
+
+    Each :class:`PolicyLearner` is built the first time a call names its policy, so the pool holds
+    no state of its own: a restarted process (Ray runs the constructor again) rebuilds each learner
+    from its live state in the storage when it is next called, exactly as a one-policy process does.
+    Calls run one at a time, so an update of one policy waits for another's in the same process.
+    """
+
+    def __init__(self, cfg: Config, index: int, device: str | None = None, storage: str | None = None) -> None:
+        self.cfg = cfg
+        self.index = int(index)
+        self.per_process = int(cfg.runtime.learners_per_process)
+        self.device = device
+        self.storage = storage
+        self.learners: dict[int, PolicyLearner] = {}
+
+    def hosts(self, policy_id: int) -> bool:
+        return pool_of(policy_id, self.per_process) == self.index
+
+    def learner(self, policy_id: int) -> PolicyLearner:
+        """The learner of ``policy_id``, built (or restored from its live state) on first use."""
+        policy_id = int(policy_id)
+        if not self.hosts(policy_id):
+            first = self.index * self.per_process
+            raise ValueError(
+                f"learner process {self.index} hosts policies {first}..{first + self.per_process - 1}, not {policy_id}"
+            )
+        if policy_id not in self.learners:
+            self.learners[policy_id] = PolicyLearner(self.cfg, policy_id, self.device, self.storage)
+        return self.learners[policy_id]
+
+    def prepare(self, policy_id: int) -> None:
+        """Build the learner of a policy the bank has not created yet (``runtime.learner_ahead``)."""
+        self.learner(policy_id)
+
+    def probe(self, policy_id: int) -> Any:
+        return self.learner(policy_id).probe()
+
+    def update(
+        self, policy_id: int, episodes: list[Any], base_version: int | None = None
+    ) -> tuple[dict[str, Any], int, dict[str, torch.Tensor]]:
+        return self.learner(policy_id).update(episodes, base_version)
+
+    def call(self, policy_id: int, method: str, *args: Any) -> Any:
+        """``method`` of the policy's learner (``weights``, ``state_dict``, ``load_state_dict``)."""
+        return getattr(self.learner(policy_id), method)(*args)
 
 
 def _resolve(episodes: list[Any]) -> list[dict[str, Any]]:

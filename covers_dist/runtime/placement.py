@@ -8,7 +8,8 @@ the nodes Ray reports (``ray.nodes()``), with the numbers and what to change.
 What a run needs at least: its rollout workers (1 CPU each), its evaluation actors
 (``eval.num_cpus`` each), and one learner per task group of ``env.tasks`` (each task under its
 transforms is one group, so the bank needs at least that many policies), plus the one started
-ahead (``runtime.learner_ahead``); each learner asks for ``runtime.learner_num_cpus`` CPUs and
+ahead (``runtime.learner_ahead``), ``runtime.learners_per_process`` of them to a process; each
+learner process asks for ``runtime.learner_num_cpus`` CPUs and
 ``runtime.num_gpus`` GPUs, fractions allowed (``0.25``: four learners share a GPU). A clustering
 that splits a group needs more; the check is for what the stream needs when clustered right.
 
@@ -35,11 +36,13 @@ class ClusterTooSmall(ConfigError):
 
 
 def learners_needed(cfg: Any) -> int:
-    """Learner actors alive at once when every group has its policy: one per group, plus the one
-    started ahead of the next policy; one for the single-policy baselines."""
+    """Learner processes alive at once when every group has its policy: one per group, plus the one
+    started ahead of the next policy, ``runtime.learners_per_process`` policies to a process; one for
+    the single-policy baselines."""
     if cfg.runtime.method in SINGLE_POLICY_METHODS:
         return 1
-    return len(cfg.env.tasks) + (1 if cfg.runtime.learner_ahead else 0)
+    policies = len(cfg.env.tasks) + (1 if cfg.runtime.learner_ahead else 0)
+    return math.ceil(policies / cfg.runtime.learners_per_process)
 
 
 def _slots(free: float, ask: float) -> float:
@@ -74,13 +77,17 @@ def check_fits(cfg: Any, nodes: Sequence[Mapping[str, float]]) -> None:
         return
     asks = " and ".join(f"{v:g} {k}" for k, v in (("GPU", gpu), ("CPU", cpu)) if v > 0)
     groups = "one policy" if rt.method in SINGLE_POLICY_METHODS else f"{len(cfg.env.tasks)} task groups" + (
-        ", plus one started ahead" if rt.learner_ahead else "")  # fmt: skip
-    why = [f"this run needs {need} learner{'s' * (need > 1)} at once ({groups}), each asking for {asks}"]
+        ", plus one started ahead" if rt.learner_ahead else "") + (
+        f", {rt.learners_per_process} policies per learner process" if rt.learners_per_process > 1 else "")  # fmt: skip
+    why = [f"this run needs {need} learner process{'es' * (need > 1)} at once ({groups}), each asking for {asks}"]
     if gpu > 0:
         why.append(f"the cluster has {total_gpus:g} GPUs on {sum(1 for n in free if n['GPU'] > 0)} node(s)")
         if total_gpus > 0:
             share = math.floor(100 * total_gpus / need) / 100
-            why.append(f"set runtime.num_gpus to {share:g} or less (learners share a GPU), or add GPU nodes")
+            why.append(
+                f"set runtime.num_gpus to {share:g} or less (learners share a GPU), raise "
+                "runtime.learners_per_process, or add GPU nodes"
+            )
         else:
             why.append("set runtime.num_gpus: 0 (CPU learners) or add GPU nodes")
     else:
