@@ -24,8 +24,8 @@ def test_bench_train_rejects_bad_arguments(argv, message):
 def test_bench_train_counts_the_policies_each_cnn_setting_starts(capsys):
     # a new (task, copy) every iteration: COVERS-CNN may create policies inside the window, the
     # single-policy CNN loop never does
-    argv = ["bench", "train", "--config", "configs/smoke.yaml", "--settings", "covers_cnn_2w,covers_cnn_2w_shared,cnn_2w", "--skip-rllib",
-            "--iterations", "2", "--warmup", "1", "--set", "env.max_episode_steps=20", "--set", "clustering.update_every=4",
+    argv = ["bench", "train", "--config", "configs/smoke.yaml", "--settings", "covers_cnn_2w,covers_cnn_2w_shared,cnn_2w",
+            "--skip-rllib", "--iterations", "2", "--warmup", "1", "--set", "env.max_episode_steps=20", "--set", "clustering.update_every=4",
             "--set", "env.episodes_per_task=4", "--set", "ppo.minibatch_size=40", "--set", "runtime.envs_per_worker=2",
             "--json"]  # fmt: skip
     assert main(argv) == 0
@@ -40,4 +40,6 @@ def test_bench_train_counts_the_policies_each_cnn_setting_starts(capsys):
     shared = out["covers_cnn_2w_shared"]
     assert bank["learner_processes"] == bank["policies"] + 1 and shared["learner_processes"] == 1
     assert single["learner_processes"] == 1
+    for r in (single, bank, shared):  # the memory counts every actor: 2 rollout workers, the clustering actor, learners
+        assert r["processes"] >= 3 + r["learner_processes"] and 0 < r["learner_peak_rss_gib"] < r["peak_rss_gib"]
     assert out["cnn_shared_learner_memory"] > 0 and out["cnn_shared_learner_speed"] > 0

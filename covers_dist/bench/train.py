@@ -18,10 +18,10 @@ In one run, on one machine, each setting on a fresh local Ray instance:
 RLlib samples with the same number of env runners and envs per runner, one train batch is one
 covers-dist iteration, with the same epochs, minibatch and learning rate. Also reported: the
 sampling phase's speed-up from 1 to 2 workers, the peak resident memory of all processes of a
-run (driver + every Ray process, sampled every 0.2 s), the seconds per iteration of each phase of
-the loop, the policies the bank created inside the measured window with the seconds their starts
-took (a new policy's learner and first weights, inside the ``assign`` phase), the learner processes
-the run started, and the ratios the targets name (``shared_learner_memory`` / ``_speed``: one
+run (driver + every process of its Ray instance, actors included, sampled every 0.2 s) and of its
+learner processes, the seconds per iteration of each phase of the loop, the policies the bank
+created inside the measured window with the seconds their starts took (a new policy's learner and
+first weights, inside the ``assign`` phase), the learner processes the run started, and the ratios the targets name (``shared_learner_memory`` / ``_speed``: one
 learner process for every policy against one each, equivariant; ``cnn_shared_learner_*``: the same
 for COVERS-CNN).
 
@@ -46,37 +46,62 @@ GIB = 1024**3
 
 
 class PeakMemory:
-    """Peak summed RSS of this process and every process whose command line mentions ``marker``."""
+    """Peak summed RSS of this process, the processes whose command line mentions ``marker`` (a Ray
+    instance's session directory: its raylet and GCS, also when another process started them) and
+    every process descended from those (the actors), sampled every 0.2 s; also the peak summed RSS
+    of the learner processes among them (command line ``ray::_LearnerHost...``). Pages shared
+    between processes (the Python and torch libraries) count once per process."""
 
-    def __init__(self, marker: str | None) -> None:
-        self.marker = marker
+    LEARNER = b"_LearnerHost"
+
+    def __init__(self, marker: str | None = None) -> None:
+        self.marker = marker.encode() if marker else None
         self.peak = 0
+        self.learner_peak = 0
         self.processes = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
-    def _rss(self) -> int:
-        total, count = 0, 0
-        page = os.sysconf("SC_PAGE_SIZE")
+    def _tree(self) -> dict[int, bytes]:
+        """pid -> command line of every process counted."""
+        children: dict[int, list[int]] = {}
+        cmdlines: dict[int, bytes] = {}
         for entry in Path("/proc").iterdir():
             if not entry.name.isdigit():
                 continue
             try:
-                mine = int(entry.name) == os.getpid()
-                if not mine and self.marker:
-                    cmd = (entry / "cmdline").read_bytes()
-                    mine = self.marker.encode() in cmd
-                if mine:
-                    total += int((entry / "statm").read_text().split()[1]) * page
-                    count += 1
-            except (OSError, ValueError):
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                cmdlines[int(entry.name)] = (entry / "cmdline").read_bytes()
+            except (OSError, ValueError, IndexError):
                 continue
+            children.setdefault(ppid, []).append(int(entry.name))
+        todo = [os.getpid(), *(p for p, c in cmdlines.items() if self.marker and self.marker in c)]
+        out: dict[int, bytes] = {}
+        while todo:
+            pid = todo.pop()
+            if pid not in out:
+                out[pid] = cmdlines.get(pid, b"")
+                todo += children.get(pid, [])
+        return out
+
+    def _sample(self) -> None:
+        page = os.sysconf("SC_PAGE_SIZE")
+        total = learners = count = 0
+        for pid, cmdline in self._tree().items():
+            try:
+                rss = int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * page
+            except (OSError, ValueError, IndexError):
+                continue
+            total += rss
+            learners += rss if self.LEARNER in cmdline else 0
+            count += 1
+        self.peak = max(self.peak, total)
+        self.learner_peak = max(self.learner_peak, learners)
         self.processes = max(self.processes, count)
-        return total
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.peak = max(self.peak, self._rss())
+            self._sample()
             self._stop.wait(0.2)
 
     def __enter__(self) -> "PeakMemory":
@@ -152,6 +177,7 @@ def _covers(
         "env_steps_per_s": steps / elapsed,
         "sample_steps_per_s": steps / sample_s,
         "peak_rss_gib": mem.peak / GIB,
+        "learner_peak_rss_gib": mem.learner_peak / GIB,
         "processes": mem.processes,
         "env_steps": steps,
         # the update's own time beside (pipelined) or after (sequential) the sampling
@@ -244,9 +270,9 @@ def run(args: argparse.Namespace) -> int:
             if not args.json:
                 print(f"{name}: {r['env_steps_per_s']:.0f} env steps/s end to end, "
                       f"{r['sample_steps_per_s']:.0f} in sampling, peak RSS {r['peak_rss_gib']:.2f} GiB "
-                      f"over {r['processes']} processes; {r['policies_created']} policies created in the "
-                      f"window ({r['policy_start_s_per_iter']:.2f} s per iteration starting them), "
-                      f"{r['learner_processes']} learner processes", flush=True)
+                      f"over {r['processes']} processes ({r['learner_peak_rss_gib']:.2f} GiB in learners); "
+                      f"{r['policies_created']} policies created in the window ({r['policy_start_s_per_iter']:.2f} s "
+                      f"per iteration starting them), {r['learner_processes']} learner processes", flush=True)
         else:
             network, extra = RLLIB_SETTINGS[name]
             r = _rllib(args.config, [*args.overrides, *extra], args.iterations, args.warmup, network)
