@@ -201,6 +201,12 @@ class PPOConfig:
         min=0.0,
     )
     target_kl: float | None = _f(None, "Stop the epochs early once approx-KL exceeds this (null: never).")
+    kl_reference: Literal["behaviour", "update_start"] = _f(
+        "behaviour",
+        "What ppo.target_kl measures the policy's move from: behaviour = the policy that acted the batch (a "
+        "pipelined batch is acted one update old, so a batch can stop at its first minibatch, before any step: "
+        "docs/learning.md); update_start = the policy at the start of this update (one more forward pass).",
+    )
     log_std_cap: float | None = _f(
         None,
         "A falling cap on the policy's learned log standard deviation: after each update every entry is clipped "

@@ -222,6 +222,26 @@ def test_target_kl_stops_early():
     assert stats["early_stopped"] and stats["optimizer_steps"] < 4 * 6
 
 
+def test_kl_stop_from_the_update_start_ignores_how_stale_the_batch_is():
+    """A batch acted one update ago (the pipelined loop's): measured from the behaviour policy the
+    KL stop fires before the first step; measured from the update's start it reads this update's
+    move only, so the update steps."""
+    model = make_model()
+    episodes = make_episodes(model)
+    cfg = PPOConfig(minibatch_size=16, lr=1e-2, epochs=2, precision="fp32")
+    learner = PPOLearner(model, cfg)
+    learner.update(episodes)  # the policy moves on: the episodes are now one update old
+    state = learner.state_dict()
+    stale = PPOLearner(make_model(), dataclasses.replace(cfg, target_kl=1e-4))
+    stale.load_state_dict(state)
+    stats = stale.update(episodes)
+    assert stats["early_stopped"] and stats["optimizer_steps"] == 0
+    fresh = PPOLearner(make_model(), dataclasses.replace(cfg, target_kl=1e-4, kl_reference="update_start"))
+    fresh.load_state_dict(state)
+    stats = fresh.update(episodes)
+    assert stats["optimizer_steps"] >= 1
+
+
 def test_linear_learning_rate_schedule():
     model = make_model()
     learner = PPOLearner(model, PPOConfig(lr=1e-3, lr_schedule="linear", total_updates=4, minibatch_size=48))

@@ -354,6 +354,7 @@ class _CoversContender:
             "envs_per_worker": cfg.runtime.envs_per_worker,
             **({} if cfg.ppo.log_std_cap is None else {"log_std_cap": float(cfg.ppo.log_std_cap)}),
             **({} if cfg.ppo.ent_schedule == "constant" else {"ent_schedule": cfg.ppo.ent_schedule}),
+            **({} if cfg.ppo.kl_reference == "behaviour" else {"kl_reference": cfg.ppo.kl_reference}),
         }
 
     def close(self) -> None:
@@ -909,6 +910,7 @@ def run(args: argparse.Namespace) -> int:
     own = [f"ppo.log_std_cap={cfg0.ppo.log_std_cap}"] * (cfg0.ppo.log_std_cap is not None)
     own += [f"network.critic={cfg0.network.critic}"] * (cfg0.network.critic != "shared")
     own += [f"ppo.ent_schedule={cfg0.ppo.ent_schedule}"] * (cfg0.ppo.ent_schedule != "constant")
+    own += [f"ppo.kl_reference={cfg0.ppo.kl_reference}"] * (cfg0.ppo.kl_reference != "behaviour")
     if own and peers:
         _fail(
             f"{', '.join(own)}: covers-dist's contenders only; the peers {peers} would train without it. "

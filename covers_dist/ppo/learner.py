@@ -11,7 +11,8 @@ loss and the gradients' accumulation stay fp32. Minibatches split each epoch's s
 ``round(N / minibatch_size)`` near-equal parts, so every sample is used every epoch. A minibatch whose loss or
 gradient norm is not finite is skipped (no optimizer step, the weights stay as they were) and
 counted in ``skipped_steps``. With ``target_kl`` set, the update stops at the first minibatch
-whose approximate KL to the behaviour policy exceeds it (that minibatch is not applied).
+whose approximate KL to the behaviour policy (``kl_reference: update_start``: to the policy at the
+start of this update) exceeds it (that minibatch is not applied).
 
 The learning rate follows ``lr_schedule``: constant, or linear from ``lr`` at update 0 to 0 at
 update ``total_updates`` (and 0 after; a run's learners get ``Config.learner_ppo``, where a null
@@ -326,6 +327,7 @@ class PPOLearner:
         steps = skipped = epochs_done = processed = 0
         early = False
         num_mb = max(1, round(n / cfg.minibatch_size))
+        start_logp = self._start_logprob(batch) if cfg.target_kl is not None and cfg.kl_reference == "update_start" else None
         for _ in range(cfg.epochs):
             for idx in torch.tensor_split(torch.randperm(n, generator=self._rng).to(device), num_mb):
                 obs = {"image": batch["image"][idx], "proprio": batch["proprio"][idx]}
@@ -343,7 +345,7 @@ class PPOLearner:
                     mean=mean, bound_coef=cfg.bound_coef,
                 )  # fmt: skip
                 processed += len(idx)
-                if cfg.target_kl is not None and terms.approx_kl > cfg.target_kl:
+                if cfg.target_kl is not None and self._moved(terms.approx_kl, logp, start_logp, idx) > cfg.target_kl:
                     early = True
                     break
                 self.optimizer.zero_grad(set_to_none=True)
@@ -392,6 +394,28 @@ class PPOLearner:
             log_std_cap=cap,  # None when off (not NaN: statistics compare equal across a retried update)
         )
         return stats
+
+    @torch.no_grad()
+    def _start_logprob(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """Log-probs of the batch's actions under the model as it is before this update's first step,
+        computed as the minibatches compute them (train mode, the update's precision)."""
+        chunk = max(1, int(self.cfg.minibatch_size))
+        out = []
+        for s in range(0, batch["action"].shape[0], chunk):
+            obs = {"image": batch["image"][s : s + chunk], "proprio": batch["proprio"][s : s + chunk]}
+            with torch.autocast(self._autocast_device, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+                logp, _, _ = self.model.evaluate_actions(obs, batch["action"][s : s + chunk])
+            out.append(logp.float())
+        return torch.cat(out)
+
+    @staticmethod
+    def _moved(approx_kl: float, logp: torch.Tensor, start_logp: torch.Tensor | None, idx: torch.Tensor) -> float:
+        """The approximate KL the stop reads: to the behaviour policy (``approx_kl``), or with
+        ``kl_reference: update_start`` to the policy at the start of the update."""
+        if start_logp is None:
+            return approx_kl
+        log_ratio = logp.detach() - start_logp[idx]
+        return float(((log_ratio.exp() - 1.0) - log_ratio).mean())
 
     @torch.no_grad()
     def _apply_log_std_cap(self) -> float | None:
