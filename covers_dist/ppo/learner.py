@@ -17,9 +17,9 @@ start of this update) exceeds it (that minibatch is not applied).
 The learning rate follows ``lr_schedule``: constant, or linear from ``lr`` at update 0 to 0 at
 update ``total_updates`` (and 0 after; a run's learners get ``Config.learner_ppo``, where a null
 ``total_updates`` is the run's length in updates); the entropy bonus follows ``ent_schedule`` on
-the same ramp (``ent_coef`` falling to 0 at ``total_updates``). With ``log_std_cap`` set, after each update the
-model's learned log standard deviation is clipped to at most :func:`log_std_cap_at` of the update
-count: a bound falling linearly from the value the model started with to ``log_std_cap`` at
+the same ramp (``ent_coef`` falling to 0 at ``total_updates``). With ``log_std_cap`` set, after
+each update the model's learned log standard deviation is clipped to at most
+:func:`log_std_cap_at` of the update count: a bound falling linearly from the value the model started with to ``log_std_cap`` at
 ``total_updates`` (the rollout workers get the clipped value with the weights, so every episode is
 acted by the standard deviation its update was computed for). The learner owns the optimizer; :meth:`state_dict`
 covers the model weights, the optimizer, the update counters and the shuffling RNG.

@@ -15,7 +15,6 @@ import numpy as np
 from ..config import Config
 from ..models.checks import check_same_function
 from .placement import check_fits
-from .learner import pool_of
 from .rollout import EVAL_WORKER_INDEX, EpisodeSpec, merge_first_frames, split_first_frames, training_seeds
 from .run_storage import mark_run, storage_location
 
@@ -230,6 +229,8 @@ class RayBackend:
     def _pool(self, policy_id: int) -> Any:
         """The learner process hosting ``policy_id``, started if it is not running yet; its learners
         persist their state after every update (a restarted process reloads it)."""
+        from .learner import pool_of  # the learner module builds networks: imported where it is used
+
         index = pool_of(policy_id, self.cfg.runtime.learners_per_process)
         if index not in self._pools:
             self._pools[index] = self._learner_cls.remote(self.cfg, index, None, self.storage, self.run_token)
