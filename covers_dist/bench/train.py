@@ -21,9 +21,9 @@ sampling phase's speed-up from 1 to 2 workers, the peak resident memory of all p
 run (driver + every process of its Ray instance, actors included, sampled every 0.2 s) and of its
 learner processes, the seconds per iteration of each phase of the loop, the policies the bank
 created inside the measured window with the seconds their starts took (a new policy's learner and
-first weights, inside the ``assign`` phase), the learner processes the run started, and the ratios the targets name (``shared_learner_memory`` / ``_speed``: one
-learner process for every policy against one each, equivariant; ``cnn_shared_learner_*``: the same
-for COVERS-CNN).
+first weights, inside the ``assign`` phase), the learner processes the run started, and the
+ratios the targets name (``shared_learner_memory`` / ``_speed``: one learner process for every
+policy against one each, equivariant; ``cnn_shared_learner_*``: the same for COVERS-CNN).
 
 Targets (reported, not asserted): equivariant loop >= 1.0x RLlib's default-CNN PPO; CNN-twin
 loop >= 2x RLlib on the same network; 2 workers > 1 worker end to end; peak memory <= 4 GiB.
