@@ -545,3 +545,76 @@ def test_training_encoders_split_one_group_under_the_threshold_not_under_calibra
     assert threshold["num_policies"] == 2, threshold["policy_counts"]
     assert calibrated["num_policies"] == 1, calibrated["policy_counts"]
     assert calibrated["ari"] == 1.0
+
+
+# ---- (h) the tail of the own policy's tests (covers-dist report) -----------------------------------------
+def tail_record(index, decision, policy_id, tests, group, distances=None):
+    """A calibrated record at rate 0.01 (N = 99 draws: one exceedance settles acceptance)."""
+    policies = {
+        str(pid): {"tested": t is not None and t[0] == "perm", "draws": t[1] if t else 0,
+                   "exceedances": t[2] if t else None, "p_value": None,
+                   "decided_by": "permutation" if t and t[0] == "perm" else "threshold", "accepted": None}
+        for pid, t in tests.items()
+    }
+    return AssignmentRecord(
+        index=index, policy_id=policy_id, decision=decision, new=decision in ("adopt", "new"),
+        distances=distances or {pid: 1.0 for pid in tests}, threshold=1.0, metric="wasserstein",
+        mode="distance", num_observations=8, episode_indices=list(range(8 * index, 8 * index + 8)),
+        wall_time_ms=0.0, time_unix=0.0, true_groups=None if group is None else [group] * 8,
+        calibration={"false_split_rate": 0.01, "max_draws": 99, "policies": policies},
+        p_values={pid: None for pid in tests},
+    )
+
+
+def tail_records(labelled=True):
+    g = (lambda x: x) if labelled else (lambda x: None)
+    return [
+        tail_record(0, "adopt", 0, {}, g(0)),
+        tail_record(1, "recall", 0, {0: ("perm", 5, 1)}, g(0)),  # first exceedance at draw 5
+        tail_record(2, "new", 1, {0: ("perm", 99, 0)}, g(1)),  # group 1's first batch: a true new group
+        tail_record(3, "recall", 1, {1: ("perm", 50, 1), 0: None}, g(1)),
+        # group 0 again, every policy rejects: a false split, its nearest policy's test (no exceedance in 99)
+        tail_record(4, "new", 2, {0: ("perm", 99, 0), 1: ("perm", 99, 0)}, g(0), distances={0: 1.2, 1: 3.0}),
+        tail_record(5, "recall", 0, {0: ("threshold", 0, None)}, g(0)),  # decided by the threshold: left out
+        tail_record(6, "recall", 2, {2: ("perm", 1, 1)}, g(0)),
+    ]
+
+
+def test_calibration_tail_counts_the_own_policys_tests():
+    from covers_dist.clustering import calibration_tail
+    from covers_dist.evaluation.report import calibration_tail_section
+
+    tail = calibration_tail(tail_records())
+    # own tests: first exceedance at 5, 50, none in 99 (-> 100), 1
+    assert (tail["tests"], tail["skipped"], tail["false_splits"], tail["labelled"]) == (4, 1, 1, True)
+    assert (tail["max_draws"], tail["false_split_rate"]) == (99, 0.01)
+    assert tail["rows"] == [{"k": 10, "count": 2, "expected": 0.4}, {"k": 100, "count": 1, "expected": 0.04}]
+    text = "\n".join(calibration_tail_section(tail))
+    assert "N = 99 draws" in text and "| 100 | 1 | 0.04 | 25.00 |" in text and "1 false split(s)" in text
+
+    # without true group ids the new decisions cannot be told apart: only recalls count
+    tail = calibration_tail(tail_records(labelled=False))
+    assert (tail["tests"], tail["skipped"], tail["false_splits"], tail["labelled"]) == (3, 1, None, False)
+    assert [r["count"] for r in tail["rows"]] == [1, 0]
+    assert "false splits unknown" in "\n".join(calibration_tail_section(tail))
+
+    # threshold records (no calibration): no tail, no section
+    thr = [AssignmentRecord.from_dict({**r.to_dict(), "calibration": None, "p_values": None}) for r in tail_records()]
+    assert calibration_tail(thr) is None and calibration_tail_section(None) == []
+
+
+def test_calibration_tail_of_a_real_bank_matches_its_records():
+    """Three groups at rate 0.01: the tail reads every recall's test of the recalled policy."""
+    from covers_dist.clustering import calibration_tail
+
+    feats = DriftingFeatures()
+    order = [int(g) for g in np.random.default_rng(3).permutation([0, 1, 2] * 12)]
+    bank = PolicyBank(feats, metric="wasserstein", rule="calibrated", false_split_rate=0.01, calibration_samples=50, seed=1)
+    recs = run_stream(bank, feats, order)
+    tail = calibration_tail(recs)
+    own = [r.calibration["policies"][str(r.policy_id)] for r in recs if r.decision == "recall"]
+    tested = [t for t in own if t["tested"]]
+    assert tail["false_splits"] == len(bank) - 3 == 0
+    assert tail["tests"] == len(tested) and tail["skipped"] == len(own) - len(tested)
+    assert tail["rows"][0] == {"k": 10, "count": sum(t["draws"] >= 10 for t in tested), "expected": len(tested) / 10}
+    assert [r["k"] for r in tail["rows"]] == [10, 100]  # N = max(50, 99) = 99

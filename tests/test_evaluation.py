@@ -578,6 +578,7 @@ def test_eval_command_is_read_only_deterministic_and_matches_the_training_pass(r
     assert main(["report", str(run)]) == 0
     report = (run / "report.md").read_text()
     assert "## Per task group" in report and "| reach |" in report
+    assert "calibrated rule's tail" not in report  # the threshold rule: no permutation tests to read
     # every pass of the run, one column each: mean over the trainable pairs / worst over all
     every = report.split("## Every pass", 1)[1].split("## Every (task, g)", 1)[0]
     from covers_dist.evaluation.report import _f

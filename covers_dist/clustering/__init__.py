@@ -9,7 +9,7 @@ from .bank import MODES, PolicyBank
 from .buffer import REPLACEMENT_RULES, ObservationBuffer
 from .distances import DISTANCES, METRIC_NAMES, get_distance, mahalanobis, mean_euclidean, wasserstein1
 from .features import FEATURE_NORMS, FeatureFn, SharedFeatures, color_histogram, normalize_pair
-from .metrics import adjusted_rand_index, confusion_table, policy_counts
+from .metrics import adjusted_rand_index, calibration_tail, confusion_table, policy_counts
 from .persistence import FORMAT_VERSION, CheckpointError, load_bank, save_bank
 from .policy_entry import PolicyEntry
 
@@ -30,6 +30,7 @@ __all__ = [
     "RULES",
     "SharedFeatures",
     "adjusted_rand_index",
+    "calibration_tail",
     "color_histogram",
     "confusion_table",
     "decide",

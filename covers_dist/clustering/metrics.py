@@ -5,7 +5,10 @@
   the contingency table rather than with scikit-learn's ``adjusted_rand_score``, whose import costs
   a clustering process ~1.5 s of its start on 2 cores; the tests check both agree;
 * per-policy episode counts;
-* the confusion table policy x group (how many episodes of each group each policy served).
+* the confusion table policy x group (how many episodes of each group each policy served);
+* the calibrated rule's tail (:func:`calibration_tail`): how often a batch's own policy saw no null
+  draw reach the observed distance in its first ``k - 1`` draws, against the ``1 / k`` of frames
+  that are exchangeable with the buffer's (the rule's false-split rate is exact only then).
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-__all__ = ["adjusted_rand_index", "policy_counts", "confusion_table"]
+__all__ = ["adjusted_rand_index", "calibration_tail", "confusion_table", "policy_counts"]
 
 
 def _pairs(policy_ids: Sequence[int], group_ids: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
@@ -75,3 +78,90 @@ def confusion_table(policy_ids: Sequence[int], group_ids: Sequence[int]) -> dict
     for pi, gi in zip(p.tolist(), g.tolist()):
         counts[row[pi], col[gi]] += 1
     return {"policies": policies, "groups": groups, "counts": counts.tolist()}
+
+
+def _majority(groups: Sequence[int] | None) -> int | None:
+    if not groups:
+        return None
+    return Counter(int(g) for g in groups).most_common(1)[0][0]
+
+
+def _first_exceedance(test: dict[str, Any], draws: int, rate: float) -> int | None:
+    """Index of a test's first null draw at or above the observed distance, ``draws + 1`` when
+    none of its ``draws`` reached it, None when the record does not say (the test went on past
+    its first exceedance, so where that came is unknown)."""
+    if not test.get("tested") or test.get("exceedances") is None:
+        return None
+    made, count = int(test["draws"]), int(test["exceedances"])
+    if count == 0:
+        return made + 1 if made == draws else None
+    # the test stops at the first exceedance that settles acceptance; with one exceedance
+    # enough, that is the first exceedance
+    if count == 1 and 2.0 / (1.0 + draws) > rate:
+        return made
+    return None
+
+
+def calibration_tail(records: Sequence[Any]) -> dict[str, Any] | None:
+    """The calibrated rule's tail over a run's assignment records (None when no record was made by
+    the calibrated rule).
+
+    Each permutation test draws null splits until acceptance is settled (docs/clustering.md). For
+    the test of a batch's *own* policy, the event "no null draw reached the observed distance in
+    the first ``k - 1`` draws" has probability ``1 / k`` when the batch's frames are exchangeable
+    with the buffer's (the premise of the rule's exact false-split rate), and a rejection is that
+    event at ``k = N + 1``. ``rows`` counts it for ``k`` = 10, 100, ... up to ``N + 1`` beside the
+    ``tests / k`` expected; a count well above the expectation at large ``k`` says the frames are
+    not exchangeable there and the run's false splits will exceed the configured rate.
+
+    Which test is the batch's own: a recall's test of the recalled policy, and with true group ids
+    (``true_groups``, metrics only) a ``new`` decision for a group that already had a policy (a
+    false split): its nearest policy's test. Without group ids ``new`` decisions are left out
+    (``labelled: False``), as are recalls of a group's first batch into another group's policy,
+    decisions at the cap, and tests the threshold decided or whose first exceedance the record
+    does not give (``skipped``)."""
+    recs = [r for r in records if getattr(r, "calibration", None)]
+    if not recs:
+        return None
+    draws = max(int(r.calibration.get("max_draws", 0)) for r in recs)
+    rate = float(recs[-1].calibration.get("false_split_rate", 0.0))
+    seen: set[int] = set()
+    labelled = all(r.true_groups for r in records)
+    firsts: list[int] = []
+    skipped = false_splits = 0
+    for r in records:
+        group = _majority(r.true_groups)
+        first_of_group = group is not None and group not in seen
+        if group is not None:
+            seen.add(group)
+        cal = getattr(r, "calibration", None)
+        if not cal or r.decision in ("adopt", "recall_at_cap") or first_of_group:
+            continue
+        tests = cal.get("policies", {})
+        if r.decision == "recall":
+            test = tests.get(str(r.policy_id))
+        elif r.decision == "new" and group is not None:
+            false_splits += 1
+            near = min(r.distances, key=lambda pid: (r.distances[pid], pid))
+            test = tests.get(str(near))
+        else:
+            continue
+        first = _first_exceedance(test or {}, int(cal.get("max_draws", draws)), rate)
+        if first is None:
+            skipped += 1
+            continue
+        firsts.append(first)
+    n = len(firsts)
+    ks = [10**j for j in range(1, 12) if 10**j <= draws + 1]
+    if draws + 1 not in ks:
+        ks.append(draws + 1)
+    rows = [{"k": k, "count": sum(f >= k for f in firsts), "expected": n / k} for k in ks]
+    return {
+        "tests": n,
+        "skipped": skipped,
+        "max_draws": draws,
+        "false_split_rate": rate,
+        "false_splits": false_splits if labelled else None,
+        "labelled": labelled,
+        "rows": rows,
+    }

@@ -5,7 +5,8 @@ or from ``covers-dist eval``), its bank (newest valid checkpoint: policies, ARI)
 and writes the table in the COVERS paper's layout, one row per task group (success on seen and
 held-out transforms, return, policies, forgetting) with the paper's success beside ours, then the
 per-pass table (each group's mean and worst transform at every pass) and the per-(task, g) grid
-of the latest pass. ``--reference TASK=RUN_DIR`` (repeatable) adds forward
+of the latest pass, and under the calibrated rule the tail of its tests (whether the run's false
+splits can exceed the configured rate). ``--reference TASK=RUN_DIR`` (repeatable) adds forward
 transfer against a run that trained on that group alone. docs/RESULTS.md explains the page.
 """
 
@@ -38,8 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def build_report(run_dir: str | Path, references: dict[str, str] | None = None) -> str:
     """The Markdown page for ``run_dir`` (see the module doc)."""
+    from ..clustering import calibration_tail
     from ..evaluation import continual_metrics, read_passes
-    from ..evaluation.report import pairs_table, passes_table, results_table
+    from ..evaluation.report import calibration_tail_section, pairs_table, passes_table, results_table
     from ..runtime.saved_run import load_saved_run
 
     saved = load_saved_run(run_dir, log=lambda m: print(m, file=sys.stderr))
@@ -84,7 +86,9 @@ def build_report(run_dir: str | Path, references: dict[str, str] | None = None) 
         "",
         passes_table(passes, list(cfg.env.tasks)),
     ]
-    lines += ["", "## Every (task, g) at the latest pass", "", pairs_table(last), ""]
+    lines += ["", "## Every (task, g) at the latest pass", "", pairs_table(last)]
+    lines += calibration_tail_section(calibration_tail(saved.service.bank.history))
+    lines.append("")
     return "\n".join(lines)
 
 

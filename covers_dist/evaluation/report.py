@@ -11,7 +11,16 @@ from typing import Any, Sequence
 import numpy as np
 
 
-__all__ = ["PAPER_SUCCESS", "PAPER_AVERAGE", "group_name", "pairs_table", "passes_table", "results_table", "markdown_table"]
+__all__ = [
+    "PAPER_SUCCESS",
+    "PAPER_AVERAGE",
+    "calibration_tail_section",
+    "group_name",
+    "pairs_table",
+    "passes_table",
+    "results_table",
+    "markdown_table",
+]
 
 #: COVERS paper (CoRL 2023), success rate per task group, mean +- 95% CI over 3 seeds.
 PAPER_SUCCESS: dict[str, tuple[str, float, float]] = {
@@ -172,3 +181,30 @@ def results_table(cl: dict[str, Any], bank_metrics: dict[str, Any], tasks: Seque
 def _avg(cl: dict[str, Any], name: str) -> float | None:
     vals = [g[name] for g in cl["groups"].values() if g.get(name) is not None]
     return float(np.mean(vals)) if vals else None
+
+
+def calibration_tail_section(tail: dict[str, Any] | None) -> list[str]:
+    """Report lines for :func:`~covers_dist.clustering.calibration_tail` (none without a
+    calibrated record)."""
+    if not tail:
+        return []
+    rows = []
+    for row in tail["rows"]:
+        ratio = row["count"] / row["expected"] if row["expected"] else None
+        rows.append([row["k"], row["count"], f"{row['expected']:.2f}", "n/a" if ratio is None else f"{ratio:.2f}"])
+    splits = (
+        f"{tail['false_splits']} false split(s) (a new policy for a group that had one)"
+        if tail["labelled"]
+        else "false splits unknown (no true group ids)"
+    )
+    return [
+        "",
+        f"## The calibrated rule's tail (false-split rate {tail['false_split_rate']:g}, N = {tail['max_draws']} draws)",
+        "",
+        f"{tail['tests']} tests of a batch's own policy ({tail['skipped']} left out: decided by the threshold or "
+        f"not recorded in full); {splits}. A row counts the tests in which none of the first k - 1 null draws "
+        "reached the observed distance: 1 / k of them if the batch's frames are exchangeable with the buffer's. "
+        "Counts well above that at large k mean more false splits than the rate (docs/clustering.md).",
+        "",
+        markdown_table(["k", "tests", "expected (tests / k)", "ratio"], rows),
+    ]
