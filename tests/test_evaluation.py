@@ -609,6 +609,29 @@ def test_eval_and_report_bad_input_are_clear_errors(runs, tmp_path, capsys):
     assert not (off / "report.md").exists()
 
 
+def test_report_of_a_calibrated_run_ends_with_the_rules_tail(tmp_path, one_torch_thread):
+    """Under the calibrated rule the page ends with the tail of the run's own-policy tests, the
+    counts of ``calibration_tail`` over the saved bank's records."""
+    from covers_dist.clustering import calibration_tail
+    from covers_dist.runtime.saved_run import load_saved_run
+
+    run = tmp_path / "cal"
+    # 12 assignments; N = max(20 samples, 1 / 0.05 - 1) = 20 draws, so the rows are k = 10 and 21
+    train(run, "clustering.rule=calibrated", "clustering.false_split_rate=0.05", "clustering.calibration_samples=20",
+          "runtime.total_env_steps=2400", "eval.every_iterations=0")
+    assert main(["eval", str(run), "--episodes", "1", "--tasks", "reach", "--modes", "greedy",
+                 "--selections", "agnostic"]) == 0
+    assert main(["report", str(run)]) == 0
+    report = (run / "report.md").read_text()
+    tail = calibration_tail(load_saved_run(run, log=lambda *_: None).service.bank.history)
+    assert tail["tests"] >= 3 and tail["labelled"] and [r["k"] for r in tail["rows"]] == [10, 21]
+    section = report.split("## The calibrated rule's tail", 1)[1]
+    assert "(false-split rate 0.05, N = 20 draws)" in section
+    assert f"{tail['tests']} tests of a batch's own policy ({tail['skipped']} left out" in section
+    for row in tail["rows"]:
+        assert f"| {row['k']} | {row['count']} | {row['expected']:.2f} |" in section
+
+
 def test_what_if_restricted_to_the_passes_policies(runs):
     """A pass beside training on Ray compares only with the policies it has weights for: the bank may
     already hold a policy whose weights the driver has not published yet."""
