@@ -598,6 +598,12 @@ def test_calibration_tail_counts_the_own_policys_tests():
     assert [r["count"] for r in tail["rows"]] == [1, 0]
     assert "false splits unknown" in "\n".join(calibration_tail_section(tail))
 
+    # a new decision with no distances in its record: counted as a split, its test left out
+    bare = tail_records()[:2] + [tail_record(2, "new", 1, {}, 0, distances={})]
+    tail = calibration_tail(bare)
+    assert (tail["tests"], tail["skipped"], tail["false_splits"]) == (1, 1, 1)
+    assert "| 10 | 0 | 0.10 | 0.00 |" in "\n".join(calibration_tail_section(tail))
+
     # threshold records (no calibration): no tail, no section
     thr = [AssignmentRecord.from_dict({**r.to_dict(), "calibration": None, "p_values": None}) for r in tail_records()]
     assert calibration_tail(thr) is None and calibration_tail_section(None) == []

@@ -142,7 +142,7 @@ def calibration_tail(records: Sequence[Any]) -> dict[str, Any] | None:
             test = tests.get(str(r.policy_id))
         elif r.decision == "new" and group is not None:
             false_splits += 1
-            near = min(r.distances, key=lambda pid: (r.distances[pid], pid))
+            near = min(r.distances, key=lambda pid: (r.distances[pid], pid)) if r.distances else None
             test = tests.get(str(near))
         else:
             continue
