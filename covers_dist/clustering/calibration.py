@@ -34,6 +34,7 @@ from .features import normalize_pair
 __all__ = [
     "NullDistance",
     "PermutationResult",
+    "accepts",
     "max_draws",
     "null_split",
     "permutation_test",
@@ -117,6 +118,13 @@ def max_draws(rate: float, samples: int) -> int:
     return max(int(samples), math.ceil(1.0 / rate - 1e-9) - 1)
 
 
+def accepts(exceedances: int, draws: int, rate: float) -> bool:
+    """The decision of a test with ``draws`` draws once ``exceedances`` of them reached the
+    observed distance: accepted when ``(1 + exceedances) / (1 + draws) > rate`` (further draws
+    cannot lower its p-value to the rate)."""
+    return (1 + exceedances) / (1 + draws) > rate
+
+
 def splits_suffice(m: int, n: int, draws: int) -> bool:
     """Whether a pool of ``m + n`` vectors has enough distinct splits for a test with ``draws``
     draws: at least ``10 * draws``. With fewer, draws repeat the observed split itself (a tie,
@@ -172,11 +180,11 @@ def permutation_test(
         drawn += 1
         if null(np.concatenate([o_idx, b_idx])) >= bar:
             count += 1
-            if (1 + count) / (1 + draws) > rate:
+            if accepts(count, draws, rate):
                 break  # accepted whatever the remaining draws give
     return PermutationResult(
         draws=drawn,
         exceedances=count,
         p_value=(1 + count) / (1 + drawn),
-        accepted=(1 + count) / (1 + draws) > rate,
+        accepted=accepts(count, draws, rate),
     )

@@ -18,6 +18,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from .calibration import accepts
+
 __all__ = ["adjusted_rand_index", "calibration_tail", "confusion_table", "policy_counts"]
 
 
@@ -97,7 +99,7 @@ def _first_exceedance(test: dict[str, Any], draws: int, rate: float) -> int | No
         return made + 1 if made == draws else None
     # the test stops at the first exceedance that settles acceptance; with one exceedance
     # enough, that is the first exceedance
-    if count == 1 and 2.0 / (1.0 + draws) > rate:
+    if count == 1 and accepts(1, draws, rate):
         return made
     return None
 
