@@ -93,6 +93,12 @@ class EnvConfig:
         "radii), so a policy can stop just outside it at almost no cost; 0 keeps Meta-World's reward.",
         min=0.0,
     )
+    success_bonus_once: bool = _f(
+        False,
+        "Pay env.success_bonus once per episode, on the first step that succeeds, instead of on every "
+        "successful step: the edge of success becomes a step in the return without the return growing with "
+        "the steps spent inside (Button Press's pressed button stays pressed).",
+    )
     episodes_per_task: int = _f(20, "Episodes before the stream switches to the next task.", min=1)
     held_out: int = _f(0, "Number of (group, g) pairs held out of training for generalization tests.", min=0)
     render_backend: Literal["auto", "egl", "osmesa", "numpy"] = _f(
@@ -114,6 +120,8 @@ class EnvConfig:
             raise ConfigError(f"env.success_bonus={self.success_bonus}: must be a finite number >= 0")
         if self.success_bonus > 0 and self.suite != "metaworld":
             raise ConfigError(f"env.success_bonus={self.success_bonus}: the success bonus applies to the metaworld suite only")
+        if self.success_bonus_once and self.success_bonus == 0:
+            raise ConfigError("env.success_bonus_once=true pays env.success_bonus once; set env.success_bonus > 0 too")
         if self.suite == "metaworld" and self.max_episode_steps * self.action_repeat > METAWORLD_MAX_PATH_LENGTH:
             raise ConfigError(
                 f"env.max_episode_steps={self.max_episode_steps} x env.action_repeat={self.action_repeat} = "

@@ -64,6 +64,22 @@ def test_success_bonus_adds_to_the_reward_of_successful_steps_only():
             MetaWorldTask("reach-v3", success_bonus=bad)
 
 
+def test_success_bonus_once_pays_the_first_successful_step_only():
+    runs = {}
+    for once in (False, True):
+        env = MetaWorldTask("reach-v3", "rf", max_episode_steps=STEPS, success_bonus=4.0, success_bonus_once=once)
+        runs[once] = [_scripted_actions(env, STEPS, SEED) for _ in range(2)]  # the second run: a new episode
+        env.close()
+    for every, once in zip(runs[False], runs[True]):
+        success = np.array(every["success"])
+        assert success.sum() >= 2  # the scripted expert stays inside for several steps
+        first = np.zeros_like(success)
+        first[int(np.argmax(success))] = 1.0
+        np.testing.assert_allclose(np.array(every["reward"]) - np.array(once["reward"]), 4.0 * (success - first))
+    with pytest.raises(TypeError, match="success_bonus_once must be True or False"):
+        MetaWorldTask("reach-v3", success_bonus=1.0, success_bonus_once=1)
+
+
 def test_success_bonus_config_is_checked():
     from covers_dist.config import load_config
 
@@ -73,6 +89,10 @@ def test_success_bonus_config_is_checked():
             load_config("configs/stream_cpu.yaml", [f"env.success_bonus={value}"])
     with pytest.raises(ConfigError, match="metaworld suite only"):
         load_config("configs/smoke.yaml", ["env.success_bonus=1"])
+    cfg = load_config("configs/stream_cpu.yaml", ["env.success_bonus=100", "env.success_bonus_once=true"])
+    assert cfg.env.success_bonus_once is True
+    with pytest.raises(ConfigError, match="set env.success_bonus > 0"):
+        load_config("configs/stream_cpu.yaml", ["env.success_bonus_once=true"])
 
 
 def test_success_radius_is_checked():

@@ -128,7 +128,8 @@ class MetaWorldTask(gym.Env):
     ``observable``: apply the spec's fixed goal height (``goal_z``) at every reset (the default);
     ``False`` keeps Meta-World's own goal sampling, whose height the image cannot show.
     ``success_bonus``: added to the reward of every agent step on which the task succeeds
-    (``info["success"]``); 0, the default, leaves Meta-World's reward as it is.
+    (``info["success"]``); 0, the default, leaves Meta-World's reward as it is. ``success_bonus_once``:
+    pay it only on the episode's first successful step.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 80}
@@ -146,6 +147,7 @@ class MetaWorldTask(gym.Env):
         observable: bool = True,
         action_repeat: int = 1,
         success_bonus: float = 0.0,
+        success_bonus_once: bool = False,
     ) -> None:
         if task not in TASKS:
             raise ValueError(f"unknown Meta-World task {task!r}; expected one of {list(TASKS)}")
@@ -164,6 +166,8 @@ class MetaWorldTask(gym.Env):
         bonus_ok = isinstance(success_bonus, (int, float, np.floating)) and not isinstance(success_bonus, bool)
         if not bonus_ok or not 0 <= success_bonus < math.inf:
             raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus!r}")
+        if not isinstance(success_bonus_once, bool):
+            raise TypeError(f"success_bonus_once must be True or False, got {success_bonus_once!r}")
         if render_backend not in RENDER_BACKENDS:
             raise ValueError(f"render_backend must be one of {list(RENDER_BACKENDS)}, got {render_backend!r}")
         if not (isinstance(camera_shift, (int, float)) and math.isfinite(camera_shift) and camera_shift >= 0):
@@ -179,6 +183,8 @@ class MetaWorldTask(gym.Env):
         self.max_episode_steps = int(max_episode_steps)
         self.action_repeat = int(action_repeat)
         self.success_bonus = float(success_bonus)
+        self.success_bonus_once = success_bonus_once
+        self._bonus_paid = False
         self.render_mode = render_mode
         self.layout = metaworld_layout(self.image_size)
         self.observation_space = spaces.Dict(
@@ -265,6 +271,7 @@ class MetaWorldTask(gym.Env):
         if hasattr(self._renderer, "invalidate"):
             self._renderer.invalidate()
         self._t = 0
+        self._bonus_paid = False
         self._mw_obs = mw_obs
         obs = self._observation(mw_obs)
         return obs, {"success": 0.0}
@@ -305,7 +312,9 @@ class MetaWorldTask(gym.Env):
             reward += float(r)
             success = max(success, float(mw_info["success"]))
             distance = min(distance, float(mw_info.get("obj_to_target", math.inf)))
-        reward += self.success_bonus * success
+        if not (self.success_bonus_once and self._bonus_paid):
+            reward += self.success_bonus * success
+            self._bonus_paid = self._bonus_paid or success > 0
         self._t += 1
         self._mw_obs = mw_obs
         obs = self._observation(mw_obs)
@@ -448,6 +457,7 @@ def make_metaworld_task(
         camera_shift_angle=float(getattr(env_cfg, "camera_shift_angle", 0.0)),
         action_repeat=int(getattr(env_cfg, "action_repeat", 1)),
         success_bonus=float(getattr(env_cfg, "success_bonus", 0.0)),
+        success_bonus_once=bool(getattr(env_cfg, "success_bonus_once", False)),
     )
 
 
