@@ -312,9 +312,9 @@ class MetaWorldTask(gym.Env):
             reward += float(r)
             success = max(success, float(mw_info["success"]))
             distance = min(distance, float(mw_info.get("obj_to_target", math.inf)))
-        if not (self.success_bonus_once and self._bonus_paid):
+        if success > 0 and not (self.success_bonus_once and self._bonus_paid):
             reward += self.success_bonus * success
-            self._bonus_paid = self._bonus_paid or success > 0
+            self._bonus_paid = True
         self._t += 1
         self._mw_obs = mw_obs
         obs = self._observation(mw_obs)
