@@ -99,6 +99,15 @@ class EnvConfig:
         "successful step: the edge of success becomes a step in the return without the return growing with "
         "the steps spent inside (Button Press's pressed button stays pressed).",
     )
+    success_bonus_radius: float = _f(
+        1.0,
+        "Pay env.success_bonus only where the task's distance is within this fraction of its success radius "
+        "(info target_ratio <= this): 1 pays it on every success; below 1 only on steps that go past the edge "
+        "into the success region, so the greedy policy aims inside it rather than at its edge (Goal Reach's "
+        "failures end at 1.0-1.1 radii).",
+        gt=0.0,
+        max=1.0,
+    )
     episodes_per_task: int = _f(20, "Episodes before the stream switches to the next task.", min=1)
     held_out: int = _f(0, "Number of (group, g) pairs held out of training for generalization tests.", min=0)
     render_backend: Literal["auto", "egl", "osmesa", "numpy"] = _f(
@@ -122,6 +131,13 @@ class EnvConfig:
             raise ConfigError(f"env.success_bonus={self.success_bonus}: the success bonus applies to the metaworld suite only")
         if self.success_bonus_once and self.success_bonus == 0:
             raise ConfigError("env.success_bonus_once=true pays env.success_bonus once; set env.success_bonus > 0 too")
+        if not 0 < self.success_bonus_radius <= 1:  # NaN as well
+            raise ConfigError(f"env.success_bonus_radius={self.success_bonus_radius}: must be a fraction in (0, 1]")
+        if self.success_bonus_radius < 1 and self.success_bonus == 0:
+            raise ConfigError(
+                f"env.success_bonus_radius={self.success_bonus_radius} says where env.success_bonus is paid; "
+                "set env.success_bonus > 0 too"
+            )
         if self.suite == "metaworld" and self.max_episode_steps * self.action_repeat > METAWORLD_MAX_PATH_LENGTH:
             raise ConfigError(
                 f"env.max_episode_steps={self.max_episode_steps} x env.action_repeat={self.action_repeat} = "

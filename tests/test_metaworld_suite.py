@@ -80,6 +80,39 @@ def test_success_bonus_once_pays_the_first_successful_step_only():
         MetaWorldTask("reach-v3", success_bonus=1.0, success_bonus_once=1)
 
 
+def test_success_bonus_radius_pays_inside_the_fraction_of_the_radius_only():
+    """With success_bonus_radius < 1 the bonus is paid on the steps whose target ratio is within that
+    fraction (not on every success), once per episode with success_bonus_once; 1 is the plain bonus."""
+    runs = {}
+    for radius, once in ((1.0, False), (0.5, False), (0.5, True)):
+        env = MetaWorldTask(
+            "plate-slide-v3", "r2f", max_episode_steps=STEPS, success_bonus=4.0, success_bonus_once=once,
+            success_bonus_radius=radius,
+        )
+        runs[radius, once] = _scripted_actions(env, STEPS, SEED)
+        env.close()
+    plain, inner, inner_once = runs[1.0, False], runs[0.5, False], runs[0.5, True]
+    success, ratio = np.array(plain["success"]), np.array(plain["target_ratio"])
+    assert inner["success"] == plain["success"] and inner["target_ratio"] == plain["target_ratio"]
+    deep = (ratio <= 0.5).astype(float)
+    assert deep.sum() >= 2 and ((success == 1) & (ratio > 0.5)).any()  # the expert crosses the ring 0.5-1 radii
+    base = np.array(plain["reward"]) - 4.0 * success  # Meta-World's own reward
+    np.testing.assert_allclose(np.array(inner["reward"]) - base, 4.0 * deep, atol=1e-9)
+    first = np.zeros_like(deep)
+    first[int(np.argmax(deep))] = 1.0
+    np.testing.assert_allclose(np.array(inner_once["reward"]) - base, 4.0 * first, atol=1e-9)
+    for bad in (0.0, -0.5, 1.5, float("nan"), True, "0.5"):
+        with pytest.raises(ValueError, match="success_bonus_radius must be a fraction"):
+            MetaWorldTask("reach-v3", success_bonus=1.0, success_bonus_radius=bad)
+    spec = register_task("push-v3", "Push")  # no success radius registered
+    try:
+        with pytest.raises(ValueError, match="registers no success radius"):
+            MetaWorldTask("push-v3", success_bonus=1.0, success_bonus_radius=0.5)
+        MetaWorldTask("push-v3", image_size=32, success_bonus=1.0).close()  # the plain bonus needs no radius
+    finally:
+        TASKS.pop(spec.name)
+
+
 def test_success_bonus_config_is_checked():
     from covers_dist.config import load_config
 
@@ -93,6 +126,16 @@ def test_success_bonus_config_is_checked():
     assert cfg.env.success_bonus_once is True
     with pytest.raises(ConfigError, match="set env.success_bonus > 0"):
         load_config("configs/stream_cpu.yaml", ["env.success_bonus_once=true"])
+    cfg = load_config("configs/stream_cpu.yaml", ["env.success_bonus=100", "env.success_bonus_radius=0.5"])
+    assert cfg.env.success_bonus_radius == 0.5
+    env = make_task(cfg.env, "reach-v3", "e")
+    assert env.unwrapped.success_bonus_radius == 0.5
+    env.close()
+    for value, words in (("0", "> 0"), ("1.5", "<= 1"), ("nan", "fraction in")):
+        with pytest.raises(ConfigError, match=words):
+            load_config("configs/stream_cpu.yaml", ["env.success_bonus=1", f"env.success_bonus_radius={value}"])
+    with pytest.raises(ConfigError, match="set env.success_bonus > 0"):
+        load_config("configs/stream_cpu.yaml", ["env.success_bonus_radius=0.5"])
 
 
 def test_success_radius_is_checked():

@@ -129,7 +129,10 @@ class MetaWorldTask(gym.Env):
     ``False`` keeps Meta-World's own goal sampling, whose height the image cannot show.
     ``success_bonus``: added to the reward of every agent step on which the task succeeds
     (``info["success"]``); 0, the default, leaves Meta-World's reward as it is. ``success_bonus_once``:
-    pay it only on the episode's first successful step.
+    pay it only on the episode's first successful step. ``success_bonus_radius``: pay it only where
+    the task's distance is within this fraction of its success radius (``info["target_ratio"] <=
+    success_bonus_radius``); 1, the default, pays it on every success, a smaller value only on steps
+    that go past the edge of success into it.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 80}
@@ -148,6 +151,7 @@ class MetaWorldTask(gym.Env):
         action_repeat: int = 1,
         success_bonus: float = 0.0,
         success_bonus_once: bool = False,
+        success_bonus_radius: float = 1.0,
     ) -> None:
         if task not in TASKS:
             raise ValueError(f"unknown Meta-World task {task!r}; expected one of {list(TASKS)}")
@@ -168,6 +172,13 @@ class MetaWorldTask(gym.Env):
             raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus!r}")
         if not isinstance(success_bonus_once, bool):
             raise TypeError(f"success_bonus_once must be True or False, got {success_bonus_once!r}")
+        radius_ok = isinstance(success_bonus_radius, (int, float, np.floating)) and not isinstance(success_bonus_radius, bool)
+        if not radius_ok or not 0 < success_bonus_radius <= 1:
+            raise ValueError(f"success_bonus_radius must be a fraction in (0, 1], got {success_bonus_radius!r}")
+        if success_bonus_radius < 1 and TASKS[task].success_radius is None:
+            raise ValueError(
+                f"success_bonus_radius={success_bonus_radius}: task {task!r} registers no success radius to take a fraction of"
+            )
         if render_backend not in RENDER_BACKENDS:
             raise ValueError(f"render_backend must be one of {list(RENDER_BACKENDS)}, got {render_backend!r}")
         if not (isinstance(camera_shift, (int, float)) and math.isfinite(camera_shift) and camera_shift >= 0):
@@ -184,6 +195,7 @@ class MetaWorldTask(gym.Env):
         self.action_repeat = int(action_repeat)
         self.success_bonus = float(success_bonus)
         self.success_bonus_once = success_bonus_once
+        self.success_bonus_radius = float(success_bonus_radius)
         self._bonus_paid = False
         self.render_mode = render_mode
         self.layout = metaworld_layout(self.image_size)
@@ -312,16 +324,21 @@ class MetaWorldTask(gym.Env):
             reward += float(r)
             success = max(success, float(mw_info["success"]))
             distance = min(distance, float(mw_info.get("obj_to_target", math.inf)))
-        if success > 0 and not (self.success_bonus_once and self._bonus_paid):
-            reward += self.success_bonus * success
+        radius = self.spec_entry.success_radius
+        ratio = distance / radius if radius is not None and math.isfinite(distance) else None
+        if self.success_bonus_radius < 1:  # only steps past the edge, into the success region
+            earned = 1.0 if ratio is not None and ratio <= self.success_bonus_radius else 0.0
+        else:
+            earned = success
+        if earned > 0 and not (self.success_bonus_once and self._bonus_paid):
+            reward += self.success_bonus * earned
             self._bonus_paid = True
         self._t += 1
         self._mw_obs = mw_obs
         obs = self._observation(mw_obs)
         info = {"success": success}
-        radius = self.spec_entry.success_radius
-        if radius is not None and math.isfinite(distance):
-            info["target_ratio"] = distance / radius  # <= 1 exactly when Meta-World counts success
+        if ratio is not None:
+            info["target_ratio"] = ratio  # <= 1 exactly when Meta-World counts success
         return obs, reward, False, self._t >= self.max_episode_steps, info
 
     def render(self) -> np.ndarray | None:
@@ -458,6 +475,7 @@ def make_metaworld_task(
         action_repeat=int(getattr(env_cfg, "action_repeat", 1)),
         success_bonus=float(getattr(env_cfg, "success_bonus", 0.0)),
         success_bonus_once=bool(getattr(env_cfg, "success_bonus_once", False)),
+        success_bonus_radius=float(getattr(env_cfg, "success_bonus_radius", 1.0)),
     )
 
 
