@@ -117,6 +117,11 @@ def _check_image_size(image_size: Any) -> int:
     return int(image_size)
 
 
+def _is_real(value: Any) -> bool:
+    """A real number (numpy floats included), not a bool."""
+    return isinstance(value, (int, float, np.floating)) and not isinstance(value, bool)
+
+
 class MetaWorldTask(gym.Env):
     """One transformed Meta-World task ``g.T`` with arm-free top-down images.
 
@@ -167,17 +172,16 @@ class MetaWorldTask(gym.Env):
                 f"max_episode_steps x action_repeat = {max_episode_steps * action_repeat} Meta-World steps; "
                 f"Meta-World allows at most {METAWORLD_MAX_PATH_LENGTH} per episode"
             )
-        bonus_ok = isinstance(success_bonus, (int, float, np.floating)) and not isinstance(success_bonus, bool)
-        if not bonus_ok or not 0 <= success_bonus < math.inf:
+        if not _is_real(success_bonus) or not 0 <= success_bonus < math.inf:
             raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus!r}")
         if not isinstance(success_bonus_once, bool):
             raise TypeError(f"success_bonus_once must be True or False, got {success_bonus_once!r}")
-        radius_ok = isinstance(success_bonus_radius, (int, float, np.floating)) and not isinstance(success_bonus_radius, bool)
-        if not radius_ok or not 0 < success_bonus_radius <= 1:
+        if not _is_real(success_bonus_radius) or not 0 < success_bonus_radius <= 1:
             raise ValueError(f"success_bonus_radius must be a fraction in (0, 1], got {success_bonus_radius!r}")
         if success_bonus_radius < 1 and TASKS[task].success_radius is None:
             raise ValueError(
-                f"success_bonus_radius={success_bonus_radius}: task {task!r} registers no success radius to take a fraction of"
+                f"success_bonus_radius={success_bonus_radius}: task {task!r} registers no success radius "
+                "to take a fraction of"
             )
         if render_backend not in RENDER_BACKENDS:
             raise ValueError(f"render_backend must be one of {list(RENDER_BACKENDS)}, got {render_backend!r}")
