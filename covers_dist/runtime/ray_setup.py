@@ -5,6 +5,13 @@ A local Ray instance binds to the machine's network address unless
 binds and talks on 127.0.0.1 only. :func:`init_ray` sets it (unless the caller set it
 otherwise), gives the run its own temp dir (removed by :func:`shutdown_ray`, Ray's logs with it,
 unless the caller keeps them), and never stops anything it did not start.
+
+Ray puts the driver's current directory at the front of its workers' ``sys.path``. Started from a
+directory that holds another copy of the package (a second checkout, an older clone), the workers
+would import that copy while the driver runs the installed one: every env and learner would run
+other code than the command was given, silently. :func:`init_ray` checks it on the instances it
+starts (:func:`check_workers_import_this_package`) and refuses such a start with an error that
+names both copies.
 """
 
 from __future__ import annotations
@@ -15,7 +22,7 @@ import sys
 import tempfile
 from typing import Any
 
-__all__ = ["init_ray", "loopback_only", "ray_temp_dir", "shutdown_ray", "failing", "resolve_weights", "check_run_dir_outlives_the_job"]
+__all__ = ["init_ray", "check_workers_import_this_package", "loopback_only", "ray_temp_dir", "shutdown_ray", "failing", "resolve_weights", "check_run_dir_outlives_the_job"]
 
 _STARTED_HERE = False
 _TEMP_DIR: str | None = None  # the temp dir of the instance started here
@@ -46,7 +53,55 @@ def init_ray(num_cpus: int, address: str | None = None, num_gpus: float | None =
         logging_level="WARNING",
     )
     _STARTED_HERE = True
+    try:
+        check_workers_import_this_package(ray)
+    except BaseException:
+        shutdown_ray(keep_logs=False)
+        raise
     return ray
+
+
+def _package_fingerprint() -> tuple[str, str]:
+    """(the directory ``covers_dist`` is imported from, a hash of its Python sources). Run in the
+    driver and, as a copy pickled by value, in a worker: it imports what it needs itself, so it
+    runs with whatever copy of the package the worker finds."""
+    import hashlib
+    import os as _os
+
+    import covers_dist
+
+    root = _os.path.dirname(_os.path.abspath(covers_dist.__file__))
+    digest = hashlib.sha256()
+    for base, dirs, files in _os.walk(root):
+        dirs[:] = sorted(d for d in dirs if d != "__pycache__")
+        for name in sorted(f for f in files if f.endswith(".py")):
+            path = _os.path.join(base, name)
+            digest.update(_os.path.relpath(path, root).encode())
+            with open(path, "rb") as fh:
+                digest.update(fh.read())
+    return root, digest.hexdigest()
+
+
+def check_workers_import_this_package(ray: Any) -> None:
+    """Raise if a Ray worker imports a ``covers_dist`` whose sources differ from the driver's (Ray
+    puts the driver's working directory first on its workers' ``sys.path``, so a copy of the
+    package there wins over the installed one). The same sources in another place (an installed
+    copy of the checkout the command runs in) pass."""
+
+    import builtins
+    import types
+
+    # the same code with no module behind it: pickled by value, so the worker needs none of this file
+    probe = types.FunctionType(_package_fingerprint.__code__, {"__builtins__": builtins}, "covers_dist_fingerprint")
+    here = _package_fingerprint()
+    there = ray.get(ray.remote(num_cpus=0)(probe).remote())
+    if there[1] != here[1]:
+        raise RuntimeError(
+            f"Ray's workers import covers_dist from {there[0]}, this command from {here[0]}, and their sources "
+            f"differ (Ray puts the driver's current directory, {os.getcwd()}, first on its workers' path: a copy "
+            "of the package there wins over the installed one). Run from a directory without another copy of "
+            "the package, or install the copy you mean to run."
+        )
 
 
 #: Longest temp dir Ray's socket paths fit under (AF_UNIX: 107 bytes, of which Ray's session
