@@ -381,7 +381,9 @@ class RuntimeConfig:
         0,
         "torch intra-op threads per learner; 0 (auto): runtime.learner_num_cpus rounded up where the learner "
         "reserves cores, else 1 (it shares the cores with the rollout workers: on 2 cores a second thread made "
-        "the pipelined loop slower, docs/runtime.md).",
+        "the pipelined loop slower where the update runs in bf16), or 2 where its update runs in fp32 on the "
+        "CPU (no native bf16: the update is the longer phase and a core idles while the driver waits for it; "
+        "docs/runtime.md, run F).",
         min=0,
     )
     actor_nice: int = _f(

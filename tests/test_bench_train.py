@@ -43,3 +43,4 @@ def test_bench_train_counts_the_policies_each_cnn_setting_starts(capsys):
     for r in (single, bank, shared):  # the memory counts every actor: 2 rollout workers, the clustering actor, learners
         assert r["processes"] >= 3 + r["learner_processes"] and 0 < r["learner_peak_rss_gib"] < r["peak_rss_gib"]
     assert out["cnn_shared_learner_memory"] > 0 and out["cnn_shared_learner_speed"] > 0
+    assert isinstance(out["native_bf16_cpu"], bool)  # auto's learner threads depend on it

@@ -4,6 +4,8 @@ In one run, on one machine, each setting on a fresh local Ray instance:
 
 * ``covers_1w`` / ``covers_2w``: the whole loop on the given config with 1 and 2 rollout workers
   (pipelined, the default); ``covers_2w_sequential``: the same with ``runtime.pipeline=false``;
+  ``covers_2w_1thread``: the same with the learner on one torch thread (``runtime.learner_threads``;
+  auto gives it two where its update runs in fp32 on the CPU);
   ``covers_2w_shared``: the same with every policy's learner in one process
   (``runtime.learners_per_process``); ``covers_cnn_2w``: the loop with the CNN twin (COVERS-CNN:
   its features are not invariant, so the bank makes a policy, and starts a learner, for each new
@@ -217,6 +219,9 @@ COVERS_SETTINGS = {  # name: (rollout workers, overrides)
     "covers_1w": (1, []),
     "covers_2w": (2, []),
     "covers_2w_sequential": (2, ["runtime.pipeline=false"]),
+    # the learner held to one torch thread, the auto choice except where the update runs in fp32 on
+    # the CPU (no native bf16), where auto gives it two: the baseline of that choice
+    "covers_2w_1thread": (2, ["runtime.learner_threads=1"]),
     # every policy's learner in one process (runtime.learners_per_process): a new policy costs a
     # network build in that process, not a process start, and no idle process waits ahead
     "covers_2w_shared": (2, ["runtime.learners_per_process=64"]),
@@ -258,10 +263,13 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"covers-dist bench train: unknown setting(s) {unknown}; choose from {known}")
     if args.skip_rllib:
         chosen = [s for s in chosen if s not in RLLIB_SETTINGS]
+    from ..ppo.learner import native_bf16_cpu
+
     cfg = load_config(args.config, args.overrides)
     out: dict[str, Any] = {
         "config": args.config, "task": cfg.env.tasks[0], "image_size": cfg.env.image_size,
         "space_to_depth": cfg.network.space_to_depth, "iterations": args.iterations,
+        "native_bf16_cpu": native_bf16_cpu(),
     }  # fmt: skip
     for name in chosen:
         if name in COVERS_SETTINGS:
@@ -293,6 +301,7 @@ def run(args: argparse.Namespace) -> int:
     ratios = {
         "end_to_end_2w_vs_1w": ("covers_2w", "covers_1w"),
         "pipeline_vs_sequential": ("covers_2w", "covers_2w_sequential"),
+        "learner_threads_auto_vs_1": ("covers_2w", "covers_2w_1thread"),
         "covers_to_rllib": ("covers_2w", "rllib_ppo"),
         "covers_cnn_to_rllib": ("covers_cnn_2w", "rllib_ppo"),
         "covers_to_rllib_same_net": ("covers_2w", "rllib_same_net_equivariant"),
