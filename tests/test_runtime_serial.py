@@ -135,29 +135,22 @@ def test_checkpoints_record_the_network_probe_and_loading_checks_it(tmp_path):
     assert "drawn per process" in probe_mismatch(None, probe, stem)
 
 
-def test_learner_threads_default_to_one_unless_the_learner_reserves_cores_or_updates_in_fp32():
-    """``runtime.learner_threads: 0`` (auto): 1 thread beside the rollout workers, 2 there where the
-    update runs in fp32 on the CPU, the reserved cores where ``runtime.learner_num_cpus`` gives it
-    some; an explicit count is kept; a negative one is a config error. A learner knows which case it
-    is in from its resolved precision and device."""
+def test_learner_threads_default_to_one_unless_the_learner_reserves_cores():
+    """``runtime.learner_threads: 0`` (auto): 1 thread beside the rollout workers, the reserved cores
+    where ``runtime.learner_num_cpus`` gives it some; an explicit count is kept; a negative one is a
+    config error."""
     from covers_dist.config import ConfigError
-    from covers_dist.runtime.learner import PolicyLearner, learner_threads
+    from covers_dist.runtime.learner import learner_threads
 
-    def threads(*sets, fp32=False):
-        return learner_threads(load_config("configs/smoke.yaml", list(sets)), fp32)
+    def threads(*sets):
+        return learner_threads(load_config("configs/smoke.yaml", list(sets)))
 
     assert threads() == 1
-    assert threads(fp32=True) == 2
     assert threads("runtime.learner_num_cpus=2.5") == 3
-    assert threads("runtime.learner_num_cpus=2.5", fp32=True) == 3
     assert threads("runtime.learner_threads=2") == 2
-    assert threads("runtime.learner_threads=1", fp32=True) == 1
     assert threads("runtime.learner_threads=2", "runtime.learner_num_cpus=8") == 2
     with pytest.raises(ConfigError, match="learner_threads"):
         threads("runtime.learner_threads=-1")
-    for precision, fp32 in (("fp32", True), ("bf16", False)):
-        learner = PolicyLearner(load_config("configs/smoke.yaml", [f"ppo.precision={precision}"]), 0, device="cpu")
-        assert learner.fp32_cpu_update is fp32
 
 
 def test_log_std_cap_reaches_the_published_weights(tmp_path):

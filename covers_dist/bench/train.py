@@ -4,8 +4,8 @@ In one run, on one machine, each setting on a fresh local Ray instance:
 
 * ``covers_1w`` / ``covers_2w``: the whole loop on the given config with 1 and 2 rollout workers
   (pipelined, the default); ``covers_2w_sequential``: the same with ``runtime.pipeline=false``;
-  ``covers_2w_1thread``: the same with the learner on one torch thread (``runtime.learner_threads``;
-  auto gives it two where its update runs in fp32 on the CPU);
+  ``covers_2w_2threads``: the same with the learner on two torch threads (``runtime.learner_threads``;
+  auto gives a learner that shares the workers' cores one);
   ``covers_2w_shared``: the same with every policy's learner in one process
   (``runtime.learners_per_process``); ``covers_cnn_2w``: the loop with the CNN twin (COVERS-CNN:
   its features are not invariant, so the bank makes a policy, and starts a learner, for each new
@@ -219,9 +219,10 @@ COVERS_SETTINGS = {  # name: (rollout workers, overrides)
     "covers_1w": (1, []),
     "covers_2w": (2, []),
     "covers_2w_sequential": (2, ["runtime.pipeline=false"]),
-    # the learner held to one torch thread, the auto choice except where the update runs in fp32 on
-    # the CPU (no native bf16), where auto gives it two: the baseline of that choice
-    "covers_2w_1thread": (2, ["runtime.learner_threads=1"]),
+    # the learner on two torch threads beside the workers (auto gives a learner without cores of its
+    # own one): a core idles while the driver waits for an update longer than its sampling (an fp32
+    # update on a CPU without native bf16), docs/runtime.md run F
+    "covers_2w_2threads": (2, ["runtime.learner_threads=2"]),
     # every policy's learner in one process (runtime.learners_per_process): a new policy costs a
     # network build in that process, not a process start, and no idle process waits ahead
     "covers_2w_shared": (2, ["runtime.learners_per_process=64"]),
@@ -301,7 +302,7 @@ def run(args: argparse.Namespace) -> int:
     ratios = {
         "end_to_end_2w_vs_1w": ("covers_2w", "covers_1w"),
         "pipeline_vs_sequential": ("covers_2w", "covers_2w_sequential"),
-        "learner_threads_auto_vs_1": ("covers_2w", "covers_2w_1thread"),
+        "learner_2threads_vs_auto": ("covers_2w_2threads", "covers_2w"),
         "covers_to_rllib": ("covers_2w", "rllib_ppo"),
         "covers_cnn_to_rllib": ("covers_cnn_2w", "rllib_ppo"),
         "covers_to_rllib_same_net": ("covers_2w", "rllib_same_net_equivariant"),

@@ -123,7 +123,13 @@ class PeriodicEvaluation:
         return self._thread is not None and self._thread.is_alive()
 
     def due(self, iteration: int) -> bool:
-        return self.enabled and iteration % self.cfg.eval.every_iterations == 0 and iteration != self.last_iteration
+        ev = self.cfg.eval
+        return (
+            self.enabled
+            and iteration % ev.every_iterations == 0
+            and iteration >= ev.first_iteration
+            and iteration != self.last_iteration
+        )
 
     def start_training_pass(
         self,

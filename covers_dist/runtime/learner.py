@@ -51,22 +51,12 @@ def live_state_key(policy_id: int) -> str:
     return f"{LEARNERS_LIVE}/policy-{policy_id}.pt"
 
 
-#: Auto threads of a learner without cores of its own whose update runs in fp32 on the CPU.
-FP32_SHARED_THREADS = 2
-
-
-def learner_threads(cfg: Config, fp32_cpu_update: bool = False) -> int:
+def learner_threads(cfg: Config) -> int:
     """torch threads for a learner's update: ``runtime.learner_threads``, or with 0 (auto) the cores
-    it reserves (``runtime.learner_num_cpus``, rounded up); a learner without cores of its own updates
-    beside the rollout workers: 1 thread where its update is the shorter phase (bf16 where the CPU has
-    it, or a GPU), a second where the update runs in fp32 on the CPU (``fp32_cpu_update``: no native
-    bf16), is the longer phase and the workers wait for it with a core idle (docs/runtime.md, run F)."""
+    it reserves (``runtime.learner_num_cpus``, rounded up), else 1: a learner without cores of its
+    own updates beside the rollout workers, and more threads only oversubscribe the cores."""
     rt = cfg.runtime
-    if rt.learner_threads:
-        return rt.learner_threads
-    if rt.learner_num_cpus > 0:
-        return math.ceil(rt.learner_num_cpus)
-    return FP32_SHARED_THREADS if fp32_cpu_update else 1
+    return rt.learner_threads or max(1, math.ceil(rt.learner_num_cpus))
 
 
 class PolicyLearner:
@@ -80,8 +70,6 @@ class PolicyLearner:
         torch.manual_seed(policy_seed(cfg.seed, policy_id))
         self.model = build_actor_critic(cfg.network, layout).to(self.device)
         self.ppo = PPOLearner(self.model, cfg.learner_ppo, seed=policy_seed(cfg.seed, policy_id))
-        #: the update in fp32 on the CPU (no native bf16 there): a second thread by default
-        self.fp32_cpu_update = torch.device(self.device).type == "cpu" and self.ppo.precision == "fp32"
         self.version = 0
         #: version after an update -> (statistics, weights) of that update, newest KEEP_RESULTS
         self.results: dict[int, tuple[dict[str, Any], dict[str, torch.Tensor]]] = {}
@@ -115,7 +103,7 @@ class PolicyLearner:
         # policy at an older version is used as stored (docs/learning.md, "A batch acted by another policy")
         other = [ep.get("policy_id") is not None and int(ep["policy_id"]) != self.policy_id for ep in flat]
         threads = torch.get_num_threads()
-        torch.set_num_threads(learner_threads(self.cfg, self.fp32_cpu_update))
+        torch.set_num_threads(learner_threads(self.cfg))
         try:
             stats = self.ppo.update(flat, reevaluate=other)
         finally:
