@@ -381,7 +381,8 @@ class RuntimeConfig:
         0,
         "torch intra-op threads per learner; 0 (auto): runtime.learner_num_cpus rounded up where the learner "
         "reserves cores, else 1 (it shares the cores with the rollout workers: on 2 cores a second thread made "
-        "the pipelined loop slower, docs/runtime.md).",
+        "the pipelined loop slower, docs/runtime.md; where the update runs in fp32 and outlasts sampling, 2 "
+        "can be faster in a run without frequent evaluation passes, run F there).",
         min=0,
     )
     actor_nice: int = _f(
@@ -449,13 +450,6 @@ EvalSelection = Literal["agnostic", "oracle"]
 class EvalConfig:
     every_iterations: int = _f(
         0, "Evaluate every (task, g) every this many iterations during training, and at the end (0: off).", min=0
-    )
-    first_iteration: int = _f(
-        0,
-        "No pass during training before this iteration (0: from the first one due); the final pass still "
-        "runs. Skips passes that cannot succeed yet: on a 2-core machine a background pass takes CPU from "
-        "training.",
-        min=0,
     )
     episodes: int = _f(4, "Episodes per (task, g) pair, chosen policy and mode (seeded apart from training).", min=1)
     modes: list[EvalMode] = _f(["greedy", "stochastic"], "Action modes: greedy (mean action) and/or stochastic.")

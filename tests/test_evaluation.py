@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from covers_dist.cli import main
-from covers_dist.config import ConfigError, load_config
+from covers_dist.config import load_config
 from covers_dist.envs.stream import TaskStream
 from covers_dist.evaluation import (
     LocalExecutors,
@@ -444,17 +444,6 @@ def test_ground_truth_what_if_with_several_frames_per_episode(tmp_path):
 
 
 # ---- a serial training run with evaluation ------------------------------------------------------------
-def test_no_pass_before_eval_first_iteration_but_the_final_one(tmp_path):
-    """``eval.first_iteration``: the passes due before it are skipped, the later ones and the final
-    pass run as scheduled; a negative value is a config error."""
-    train(tmp_path / "late", "eval.every_iterations=1", "eval.first_iteration=2", "eval.tasks=[reach]")
-    assert [p["iteration"] for p in lines(tmp_path / "late" / "eval.jsonl")] == [2, 3]
-    train(tmp_path / "final", "eval.every_iterations=1", "eval.first_iteration=10", "eval.tasks=[reach]")
-    assert [p["iteration"] for p in lines(tmp_path / "final" / "eval.jsonl")] == [3]
-    with pytest.raises(ConfigError, match="first_iteration"):
-        tiny_cfg(tmp_path / "bad", "eval.first_iteration=-1")
-
-
 def test_training_writes_passes_every_two_iterations_and_at_the_end(runs):
     on, _ = runs
     passes = lines(on / "eval.jsonl")

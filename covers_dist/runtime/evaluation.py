@@ -123,13 +123,7 @@ class PeriodicEvaluation:
         return self._thread is not None and self._thread.is_alive()
 
     def due(self, iteration: int) -> bool:
-        ev = self.cfg.eval
-        return (
-            self.enabled
-            and iteration % ev.every_iterations == 0
-            and iteration >= ev.first_iteration
-            and iteration != self.last_iteration
-        )
+        return self.enabled and iteration % self.cfg.eval.every_iterations == 0 and iteration != self.last_iteration
 
     def start_training_pass(
         self,
