@@ -43,4 +43,16 @@ def test_bench_train_counts_the_policies_each_cnn_setting_starts(capsys):
     for r in (single, bank, shared):  # the memory counts every actor: 2 rollout workers, the clustering actor, learners
         assert r["processes"] >= 3 + r["learner_processes"] and 0 < r["learner_peak_rss_gib"] < r["peak_rss_gib"]
     assert out["cnn_shared_learner_memory"] > 0 and out["cnn_shared_learner_speed"] > 0
-    assert isinstance(out["native_bf16_cpu"], bool)  # auto's learner threads depend on it
+
+
+@pytest.mark.bench
+def test_bench_train_puts_a_two_thread_learner_beside_the_default(capsys):
+    argv = ["bench", "train", "--config", "configs/smoke.yaml", "--settings", "covers_2w,covers_2w_2threads",
+            "--skip-rllib", "--iterations", "2", "--warmup", "1", "--set", "env.max_episode_steps=20", "--set", "clustering.update_every=4",
+            "--set", "ppo.minibatch_size=40", "--set", "runtime.envs_per_worker=2", "--json"]  # fmt: skip
+    assert main(argv) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    auto, two = out["covers_2w"], out["covers_2w_2threads"]
+    assert auto["env_steps"] == two["env_steps"] == 2 * 4 * 20
+    assert out["learner_2threads_vs_auto"] == round(two["env_steps_per_s"] / auto["env_steps_per_s"], 3)
+    assert isinstance(out["native_bf16_cpu"], bool)
