@@ -45,6 +45,17 @@ def test_bench_train_counts_the_policies_each_cnn_setting_starts(capsys):
     assert out["cnn_shared_learner_memory"] > 0 and out["cnn_shared_learner_speed"] > 0
 
 
+def test_the_two_thread_setting_gives_its_learner_two_threads_and_the_default_one():
+    from covers_dist.bench.train import COVERS_SETTINGS
+    from covers_dist.config import load_config
+    from covers_dist.runtime.learner import learner_threads
+
+    def threads(name):
+        return learner_threads(load_config("configs/stream_cpu.yaml", COVERS_SETTINGS[name][1]))
+
+    assert threads("covers_2w_2threads") == 2 and threads("covers_2w") == 1
+
+
 @pytest.mark.bench
 def test_bench_train_puts_a_two_thread_learner_beside_the_default(capsys):
     argv = ["bench", "train", "--config", "configs/smoke.yaml", "--settings", "covers_2w,covers_2w_2threads",
