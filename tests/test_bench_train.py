@@ -56,9 +56,21 @@ def test_the_two_thread_setting_gives_its_learner_two_threads_and_the_default_on
     assert threads("covers_2w_2threads") == 2 and threads("covers_2w") == 1
 
 
+def test_the_coarse_stem_setting_changes_only_the_stem():
+    import dataclasses
+
+    from covers_dist.bench.train import COVERS_SETTINGS
+    from covers_dist.config import load_config
+
+    base = load_config("configs/stream_cpu.yaml", COVERS_SETTINGS["covers_2w"][1])
+    coarse = load_config("configs/stream_cpu.yaml", COVERS_SETTINGS["covers_2w_s2d4"][1])
+    assert base.network.space_to_depth == 2 and coarse.network.space_to_depth == 4
+    assert dataclasses.replace(coarse, network=dataclasses.replace(coarse.network, space_to_depth=2)) == base
+
+
 @pytest.mark.bench
-def test_bench_train_puts_a_two_thread_learner_beside_the_default(capsys):
-    argv = ["bench", "train", "--config", "configs/smoke.yaml", "--settings", "covers_2w,covers_2w_2threads",
+def test_bench_train_puts_a_two_thread_learner_and_the_coarse_stem_beside_the_default(capsys):
+    argv = ["bench", "train", "--config", "configs/smoke.yaml", "--settings", "covers_2w,covers_2w_2threads,covers_2w_s2d4",
             "--skip-rllib", "--iterations", "2", "--warmup", "1", "--set", "env.max_episode_steps=20", "--set", "clustering.update_every=4",
             "--set", "ppo.minibatch_size=40", "--set", "runtime.envs_per_worker=2", "--json"]  # fmt: skip
     assert main(argv) == 0
@@ -66,4 +78,7 @@ def test_bench_train_puts_a_two_thread_learner_beside_the_default(capsys):
     auto, two = out["covers_2w"], out["covers_2w_2threads"]
     assert auto["env_steps"] == two["env_steps"] == 2 * 4 * 20
     assert out["learner_2threads_vs_auto"] == round(two["env_steps_per_s"] / auto["env_steps_per_s"], 3)
+    coarse = out["covers_2w_s2d4"]
+    assert coarse["env_steps"] == auto["env_steps"] and out["space_to_depth"] == 1  # smoke's own stem
+    assert out["s2d4_vs_config"] == round(coarse["env_steps_per_s"] / auto["env_steps_per_s"], 3)
     assert isinstance(out["native_bf16_cpu"], bool)

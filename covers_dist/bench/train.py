@@ -5,7 +5,8 @@ In one run, on one machine, each setting on a fresh local Ray instance:
 * ``covers_1w`` / ``covers_2w``: the whole loop on the given config with 1 and 2 rollout workers
   (pipelined, the default); ``covers_2w_sequential``: the same with ``runtime.pipeline=false``;
   ``covers_2w_2threads``: the same with the learner on two torch threads (``runtime.learner_threads``;
-  auto gives a learner that shares the workers' cores one);
+  auto gives a learner that shares the workers' cores one); ``covers_2w_s2d4``: the same with the
+  coarser stem (``network.space_to_depth: 4``; ``s2d4_vs_config`` is its speed over the config's);
   ``covers_2w_shared``: the same with every policy's learner in one process
   (``runtime.learners_per_process``); ``covers_cnn_2w``: the loop with the CNN twin (COVERS-CNN:
   its features are not invariant, so the bank makes a policy, and starts a learner, for each new
@@ -223,6 +224,9 @@ COVERS_SETTINGS = {  # name: (rollout workers, overrides)
     # own one): a core idles while the driver waits for an update longer than its sampling (an fp32
     # update on a CPU without native bf16), docs/runtime.md run F
     "covers_2w_2threads": (2, ["runtime.learner_threads=2"]),
+    # the coarser stem (4x4 pixel blocks folded into channels: ~2.4x the equivariant update on an
+    # AVX2 CPU, bench learner): what the loop gains end to end where the update is the longer phase
+    "covers_2w_s2d4": (2, ["network.space_to_depth=4"]),
     # every policy's learner in one process (runtime.learners_per_process): a new policy costs a
     # network build in that process, not a process start, and no idle process waits ahead
     "covers_2w_shared": (2, ["runtime.learners_per_process=64"]),
@@ -303,6 +307,7 @@ def run(args: argparse.Namespace) -> int:
         "end_to_end_2w_vs_1w": ("covers_2w", "covers_1w"),
         "pipeline_vs_sequential": ("covers_2w", "covers_2w_sequential"),
         "learner_2threads_vs_auto": ("covers_2w_2threads", "covers_2w"),
+        "s2d4_vs_config": ("covers_2w_s2d4", "covers_2w"),
         "covers_to_rllib": ("covers_2w", "rllib_ppo"),
         "covers_cnn_to_rllib": ("covers_cnn_2w", "rllib_ppo"),
         "covers_to_rllib_same_net": ("covers_2w", "rllib_same_net_equivariant"),
