@@ -66,6 +66,14 @@ def test_shipped_configs_are_package_data_and_the_repository_path_still_works():
     assert (ROOT / "configs" / "demo.yaml").read_text() == shipped["demo"].read_text()
 
 
+def test_stream_fast_is_stream_cpu_with_the_measured_overrides():
+    # docs/RESULTS.md's runs with the coarser stem ran stream_cpu with exactly these overrides
+    measured = ["env.success_bonus=100", "env.success_bonus_once=true", "env.success_bonus_radius=0.5",
+                "network.space_to_depth=4", "runtime.total_env_steps=1500000", "runtime.time_limit_minutes=90",
+                "runtime.run_dir=runs/stream-fast", "name=stream-fast"]  # fmt: skip
+    assert load_config("stream_fast") == load_config("stream_cpu", measured)
+
+
 def test_overrides_parse_values_as_yaml():
     cfg = load_config(ROOT / "configs/smoke.yaml", ["ppo.lr=1e-4", "env.tasks=[reach, push]", "ppo.target_kl=null"])
     assert cfg.ppo.lr == 1e-4 and cfg.env.tasks == ["reach", "push"] and cfg.ppo.target_kl is None
