@@ -33,6 +33,7 @@ __all__ = [
     "EvalConfig",
     "Config",
     "load_config",
+    "read_config_file",
     "resolve_config_path",
     "shipped_configs",
     "config_from_dict",
@@ -770,12 +771,55 @@ def resolve_config_path(path: str | Path) -> Path:
     raise ConfigError(f"config file {str(p)!r} does not exist (shipped configs, usable by name: {names})")
 
 
+#: The top-level key by which a config file builds on another: ``base: stream_cpu`` takes that file's
+#: values and lets this file's replace them field by field (a list is replaced whole).
+BASE_KEY = "base"
+
+
+def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    """``top`` over ``base``: sections merged field by field, any other value replaced."""
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _resolve_base(name: Any, owner: Path) -> Path:
+    """The file a ``base:`` value in ``owner`` names: a file beside ``owner`` first, then a shipped config."""
+    if not isinstance(name, str) or not name.strip():
+        raise ConfigError(f"config file {str(owner)!r}: {BASE_KEY} must name another config file, got {name!r}")
+    for candidate in (owner.parent / name, owner.parent / f"{name}.yaml"):
+        if candidate.is_file():
+            return candidate
+    try:
+        return resolve_config_path(name)
+    except ConfigError as e:
+        raise ConfigError(f"config file {str(owner)!r}: its {BASE_KEY} {name!r} was not found ({e})") from None
+
+
+def read_config_file(path: Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A config file's values with its ``base:`` chain applied (the file's own values win)."""
+    data = _read_yaml(path)
+    if BASE_KEY not in data:
+        return data
+    chain = (*_chain, path.resolve())
+    base_path = _resolve_base(data.pop(BASE_KEY), path)
+    if base_path.resolve() in chain:
+        names = " -> ".join(str(p) for p in (*chain, base_path.resolve()))
+        raise ConfigError(f"config file {str(path)!r}: its {BASE_KEY} chain loops ({names})")
+    return _merge(read_config_file(base_path, chain), data)
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
     """Load a YAML config (or the defaults when ``path`` is None) and apply overrides.
 
-    ``path`` is a file or the name of a shipped config (:func:`resolve_config_path`).
+    ``path`` is a file or the name of a shipped config (:func:`resolve_config_path`); a file with a
+    top-level ``base:`` builds on the config it names (:func:`read_config_file`).
     """
-    data: dict[str, Any] = {} if path is None else _read_yaml(resolve_config_path(path))
+    data: dict[str, Any] = {} if path is None else read_config_file(resolve_config_path(path))
     return config_from_dict(apply_overrides(data, overrides))
 
 

@@ -1,6 +1,7 @@
 from pathlib import Path
 
 import pytest
+import yaml
 
 from covers_dist.cli import main
 from covers_dist.config import (
@@ -73,6 +74,47 @@ def test_stream_fast_is_stream_cpu_with_the_measured_overrides():
                 "network.space_to_depth=4", "runtime.total_env_steps=1500000", "runtime.time_limit_minutes=90",
                 "runtime.run_dir=runs/stream-fast", "name=stream-fast"]  # fmt: skip
     assert load_config("stream_fast") == load_config("stream_cpu", measured)
+
+
+def test_stream_fast_builds_on_stream_cpu_by_its_base_key():
+    # the file holds only what differs, so the two cannot drift apart
+    data = yaml.safe_load(shipped_configs()["stream_fast"].read_text())
+    assert data["base"] == "stream_cpu" and "clustering" not in data and "ppo" not in data
+
+
+def test_a_base_file_gives_every_value_the_file_does_not_set(tmp_path):
+    (tmp_path / "parent.yaml").write_text(
+        "seed: 5\nppo:\n  lr: 1.0e-4\n  epochs: 7\nnetwork:\n  channels: [4, 8, 8, 16, 16, 16]\n"
+    )
+    child = tmp_path / "child.yaml"
+    child.write_text("base: parent\nppo:\n  epochs: 2\nnetwork:\n  channels: [8, 8]\n")
+    cfg = load_config(child)
+    assert cfg.seed == 5 and cfg.ppo.lr == 1e-4  # from the base
+    assert cfg.ppo.epochs == 2 and cfg.network.channels == [8, 8]  # the file's own win; a list replaced whole
+    assert load_config(child, ["ppo.epochs=3"]).ppo.epochs == 3  # --set still has the last word
+    # a chain of bases, and a base by a shipped config's name
+    (tmp_path / "grandchild.yaml").write_text("base: child.yaml\nseed: 9\n")
+    g = load_config(tmp_path / "grandchild.yaml")
+    assert (g.seed, g.ppo.lr, g.ppo.epochs) == (9, 1e-4, 2)
+    (tmp_path / "on_smoke.yaml").write_text("base: smoke\nseed: 4\n")
+    assert load_config(tmp_path / "on_smoke.yaml") == load_config("smoke", ["seed=4"])
+
+
+@pytest.mark.parametrize(
+    "files, match",
+    [
+        ({"a.yaml": "base: nowhere\n"}, r"a.yaml.*its base 'nowhere' was not found"),
+        ({"a.yaml": "base: 3\n"}, r"a.yaml.*base must name another config file, got 3"),
+        ({"a.yaml": "base: b\n", "b.yaml": "base: a.yaml\n"}, r"b.yaml.*its base chain loops \(.*a.yaml -> .*b.yaml -> .*a.yaml\)"),
+        ({"a.yaml": "base: a\n"}, r"its base chain loops"),
+        ({"a.yaml": "base: b\n", "b.yaml": "ppo:\n  epoch: 2\n"}, r"unknown config key\(s\) \['ppo.epoch'\]"),
+    ],
+)
+def test_bad_base_keys_name_the_file(tmp_path, files, match):
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    with pytest.raises(ConfigError, match=match):
+        load_config(tmp_path / "a.yaml")
 
 
 def test_overrides_parse_values_as_yaml():
