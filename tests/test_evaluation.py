@@ -883,6 +883,8 @@ def test_compare_across_seeds_averages_each_method_over_its_seeds(runs, equi_run
     assert data["held_out"] is None
     assert [r["held_out"] for r in data["runs"]] == [held[on], held[on], held[s1]]
     assert [m["method"] for m in data["methods"]] == ["covers", "equi"]
+    # a method with several runs names each by its seed, in the tables and the figure's legend
+    assert [r["label"] for r in data["runs"]] == ["covers seed 0", "equi", "covers seed 1"]
     covers, eq = data["methods"]
     assert covers["seeds"] == [0, 1] and eq["seeds"] == [0]
     rows = [r for r in data["runs"] if r["method"] == "covers"]
@@ -898,6 +900,7 @@ def test_compare_across_seeds_averages_each_method_over_its_seeds(runs, equi_run
     md = (out / "compare.md").read_text()
     assert "## Per method, mean +- standard deviation over seeds" in md and "| covers | 0, 1 |" in md
     assert "| equi | 0 |" in md and "n/a (one policy)" in md and "held-out pairs per run" in md
+    assert "| covers seed 1 | 1 |" in md
     # one method twice with one seed would count that seed twice: refused, nothing written
     twin = tmp_path / "covers-again"
     shutil.copytree(on, twin)

@@ -70,7 +70,7 @@ def load_runs(run_dirs: Sequence[str | Path], window: int = 8) -> list[Any]:
     """:class:`~covers_dist.evaluation.compare.RunResults` of each run directory, labelled
     (``window``: episodes on either side of a gap for the re-entry table)."""
     from ..evaluation import read_passes
-    from ..evaluation.compare import RunResults, run_label
+    from ..evaluation.compare import RunResults, run_labels
     from ..runtime.saved_run import load_saved_run
 
     runs: list[RunResults] = []
@@ -94,8 +94,9 @@ def load_runs(run_dirs: Sequence[str | Path], window: int = 8) -> list[Any]:
             bank=saved.service.metrics(),
         )
         r.reentry, r.value_fit = _stream_stats(path, window, lag=1 if cfg.runtime.pipeline else 0)
-        r.label = run_label(r.method, path.name, [x.label for x in runs])
         runs.append(r)
+    for r, label in zip(runs, run_labels(runs)):
+        r.label = label
     return runs
 
 

@@ -17,7 +17,9 @@ loads the runs and draws the curves).
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -33,7 +35,7 @@ __all__ = [
     "comparison_json",
     "methods_table",
     "reentry_table",
-    "run_label",
+    "run_labels",
     "success_curve",
     "value_fit_table",
 ]
@@ -67,9 +69,20 @@ class RunResults:
         return continual_metrics(self.passes)
 
 
-def run_label(method: str, name: str, taken: Sequence[str]) -> str:
-    """``method``, or ``method (name)`` when another run already uses that label."""
-    return method if method not in taken else f"{method} ({name})"
+def run_labels(runs: Sequence[RunResults]) -> list[str]:
+    """Each run's name in tables and figures: its method; ``method seed S`` where the method has
+    several runs; ``method (directory)`` where one method has several runs of one seed."""
+    methods = Counter(r.method for r in runs)
+    seeds = Counter((r.method, r.seed) for r in runs)
+    labels = []
+    for r in runs:
+        if methods[r.method] == 1:
+            labels.append(r.method)
+        elif seeds[(r.method, r.seed)] == 1:
+            labels.append(f"{r.method} seed {r.seed}")
+        else:
+            labels.append(f"{r.method} ({Path(r.path).name})")
+    return labels
 
 
 def check_comparable(runs: Sequence[RunResults], across_seeds: bool = False) -> None:
