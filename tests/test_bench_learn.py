@@ -569,3 +569,71 @@ def test_figure_refuses_a_file_that_is_not_a_result(tmp_path, learn):
     res = learn("--figure", str(bad), "--plot", str(tmp_path / "x.png"))
     assert res.returncode == 2 and "--figure" in res.stderr and "curve point 0" in res.stderr, res.stderr
     assert not (tmp_path / "x.png").exists()
+
+
+# ---- seeds summed up ------------------------------------------------------------------------------------
+def _seed_results(tmp_path, runs, **top) -> list[str]:
+    """One result file per (task, seed, entry) of ``runs``; their paths."""
+    paths = []
+    for task, seed, entry in runs:
+        path = tmp_path / f"{task}-s{seed}.json"
+        path.write_text(json.dumps(_result({"covers": entry}, task=task, seed=seed,
+                                           overrides=[f"seed={seed}", "ppo.epochs=4"], **top)))  # fmt: skip
+        paths.append(str(path))
+    return paths
+
+
+def test_table_gives_each_group_its_seeds_held_and_censored_median(tmp_path, learn):
+    paths = _seed_results(tmp_path, [
+        ("reach", 0, _entry(True, 1000, 60.0)), ("reach", 1, _entry(True, 3000, 180.0)),
+        ("reach", 2, _entry(False, None, None)), ("push", 0, _entry(True, 2000, 90.0)),
+        ("push", 1, _entry(False, None, None)),
+    ])  # fmt: skip
+    res = learn("--table", ",".join(paths), "--json")
+    assert res.returncode == 0, res.stderr
+    reach, push = json.loads(res.stdout.strip().splitlines()[-1])
+    assert (reach["task"], reach["seeds"], reach["held"], reach["n"]) == ("reach", [0, 1, 2], 2, 3)
+    # the run that did not hold counts as later than both that did: the median is the second of three
+    assert reach["env_steps_to_held"] == {"median": 3000.0, "min": 1000.0, "max": 3000.0}
+    assert reach["minutes_to_held"] == {"median": 3.0, "min": 1.0, "max": 3.0}
+    # one of two held: half the seeds are past the budget, so there is no median, only the range
+    assert push["env_steps_to_held"] == {"median": None, "min": 2000.0, "max": 2000.0}
+    assert push["setting"]["overrides"] == ["ppo.epochs=4"]
+    text = learn("--table", ",".join(paths))
+    assert text.returncode == 0, text.stderr
+    lines = text.stdout.strip().splitlines()
+    assert lines[0].startswith("| task group |") and "held within 2k env steps or 1 min" in lines[0]
+    assert "| reach | covers | 2 of 3 (seeds 0, 1) | 3k (1k-3k; 1 later than the budget) | 3.0 (1.0-3.0;" in lines[2]
+    assert "seed 2: 0.00/0.00 at 0" in lines[2]
+    assert "| push | covers | 1 of 2 (seeds 0) | not held (2k; 1 later than the budget) |" in lines[3]
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"overrides": ["ppo.epochs=2"]}, ["overrides", "ppo.epochs=2", "one setting"]),
+        ({"threshold": 0.8}, ["threshold", "0.8"]),
+        ({"budget": {"env_steps": 9000, "minutes": 1.0}}, ["budget", "9000"]),
+        ({"seed": 0}, ["seed 0", "more than one result"]),
+        ({"contenders": {"covers": {"reached": True, "curve": []}}}, ["held but has no env steps"]),
+        ({"contenders": {"covers": 3}}, ["not a bench learn result"]),
+        ({"task": None, "contenders": None}, ["not a bench learn result"]),
+    ],
+)
+def test_table_refuses_runs_of_other_settings_or_a_repeated_seed(tmp_path, learn, change, words):
+    good = _seed_results(tmp_path, [("reach", 0, _entry(True, 1000, 60.0))])[0]
+    second = _result({"covers": _entry(False, None, None)}, seed=1, overrides=["seed=1", "ppo.epochs=4"])
+    second.update(change)
+    bad = tmp_path / "second.json"
+    bad.write_text(json.dumps({k: v for k, v in second.items() if v is not None}))
+    res = learn("--table", good, str(bad))
+    assert res.returncode == 2, res.stderr
+    err = res.stderr.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("covers-dist bench learn: --table:"), err
+    assert all(w in err for w in words), err
+    assert res.stdout == ""
+
+
+def test_table_names_a_missing_file(tmp_path, learn):
+    res = learn("--table", str(tmp_path / "missing.json"))
+    assert res.returncode == 2 and "--table" in res.stderr and "no such file" in res.stderr, res.stderr

@@ -60,6 +60,12 @@ learners, env runners; reported as ``setup_s``) nor the evaluations (``eval_s``)
 **Separate invocations** (``--merge A/result.json B/result.json``): contenders run apart (say
 ``covers`` first, the peers later) are joined into one result with its ratios and curves,
 provided they agree on the task, group, transforms, threshold and evaluation protocol.
+
+**Seeds summed up** (``--table A/result.json B/result.json ...``): runs of the same settings on
+several seeds and task groups become one row per (task group, contender): how many seeds held,
+and the median and range of the env steps and training minutes to held. A run that did not hold
+counts as later than every run that did (its time is censored at the budget), so the median is a
+figure only when at least half the seeds held.
 """
 
 from __future__ import annotations
@@ -107,7 +113,7 @@ ActFn = Callable[[Mapping[str, np.ndarray]], np.ndarray]
 
 __all__ = [
     "GroupEvaluation", "CONTENDERS", "PEERS", "register", "run", "plot_curves", "ratios", "merge_results",
-    "results_figure",
+    "results_figure", "results_table", "format_table",
 ]
 
 
@@ -150,6 +156,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="train nothing: draw the curves of earlier result.json files (comma-separated; any task "
                         "groups, seeds and settings) into --plot, a panel per task group, one line per result "
                         "and contender")  # fmt: skip
+    p.add_argument("--table", action=CommaList, default=None, metavar="RESULT.json",
+                   help="train nothing: per task group and contender, the seeds that held and the median and "
+                        "range of env steps and training minutes to held, over earlier result.json files of one "
+                        "setting (comma-separated); a Markdown table, or JSON with --json")  # fmt: skip
     p.add_argument("--labels", action=CommaList, default=None, metavar="LABEL",
                    help="with --figure: one label per result file (default: its seed and the overrides the "
                         "others do not share)")  # fmt: skip
@@ -881,8 +891,133 @@ def _figure(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---- seeds summed up -----------------------------------------------------------------------------
+#: What the runs summed up in one row must share (besides the task and the contender).
+_TABLE_KEYS = ("group", "threshold", "eval", "budget", "config")
+
+
+def _setting(res: Mapping[str, Any]) -> dict[str, Any]:
+    """What a result's runs were trained and judged with, its seed left out."""
+    overrides = [str(o) for o in res.get("overrides") or [] if not str(o).startswith("seed=")]
+    return {**{k: res.get(k) for k in _TABLE_KEYS}, "overrides": overrides}
+
+
+def _censored_median(values: Sequence[float], runs: int) -> float:
+    """The median of ``runs`` times to held, ``values`` of them observed and the rest later than any
+    of them (not held within the budget): ``inf`` when half the runs or more did not hold."""
+    ordered = sorted(values) + [math.inf] * (runs - len(values))
+    middle = len(ordered) // 2
+    if len(ordered) % 2:
+        return ordered[middle]
+    return (ordered[middle - 1] + ordered[middle]) / 2
+
+
+def results_table(results: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict[str, Any]]:
+    """One row per (task group, contender) over ``(source, result)`` pairs of one setting: its seeds,
+    how many held, the censored median (:func:`_censored_median`) and the range of env steps and
+    training minutes to held over those that did, each seed's worst and mean transform at its last
+    evaluation and its env steps per second. Rows in first-seen order. Raises ``ValueError`` naming a
+    file that is not a bench learn result, whose setting differs from the first's, or that repeats
+    a seed of its row."""
+    rows: dict[tuple[str, str], dict[str, Any]] = {}
+    first: tuple[str, dict[str, Any]] | None = None
+    for source, res in results:
+        if not isinstance(res.get("contenders"), Mapping) or "task" not in res or "threshold" not in res:
+            raise ValueError(f"{source}: not a bench learn result (no task, threshold or contenders)")
+        setting = _setting(res)
+        if first is None:
+            first = (source, setting)
+        for key, value in setting.items():
+            if value != first[1][key]:
+                raise ValueError(f"{source}: {key} {value!r} differs from {first[0]}'s {first[1][key]!r}; "
+                                 "a table sums up the seeds of one setting")  # fmt: skip
+        for contender, entry in res["contenders"].items():
+            if not isinstance(entry, Mapping):
+                raise ValueError(f"{source}: not a bench learn result (contender {contender!r} is not an object)")
+            if "error" in entry:
+                continue
+            _check_curve(source, contender, entry)
+            if entry.get("reached") and not (_is_number(entry.get("env_steps_to_threshold"))
+                                             and _is_number(entry.get("wall_s_to_threshold"))):  # fmt: skip
+                raise ValueError(f"{source}: contender {contender!r} held but has no env steps or time to held")
+            row = rows.setdefault((res["task"], contender), {"task": res["task"], "contender": contender, "runs": []})
+            seed = res.get("seed")
+            if any(run["seed"] == seed for run in row["runs"]):
+                raise ValueError(f"{source}: seed {seed} of {res['task']} {contender} appears in more than one result")
+            last = entry["curve"][-1] if entry["curve"] else {"min_success": 0.0, "mean_success": 0.0}
+            row["runs"].append({
+                "seed": seed, "source": source, "held": bool(entry.get("reached")),
+                "env_steps_to_held": entry.get("env_steps_to_threshold") if entry.get("reached") else None,
+                "minutes_to_held": round(entry["wall_s_to_threshold"] / 60.0, 2) if entry.get("reached") else None,
+                "last": {k: last.get(k) for k in ("env_steps", "min_success", "mean_success")},
+                "steps_per_s": entry.get("steps_per_s"),
+            })  # fmt: skip
+    for row in rows.values():
+        held = [run for run in row["runs"] if run["held"]]
+        row.update(seeds=[run["seed"] for run in row["runs"]], held=len(held), n=len(row["runs"]))
+        for key in ("env_steps_to_held", "minutes_to_held"):
+            values = [float(run[key]) for run in held]
+            median = _censored_median(values, len(row["runs"]))
+            row[key] = {
+                "median": None if math.isinf(median) else round(median, 2),
+                "min": min(values) if values else None,
+                "max": max(values) if values else None,
+            }
+    if first is not None:
+        for row in rows.values():
+            row["setting"] = first[1]
+    return list(rows.values())
+
+
+def format_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """:func:`results_table`'s rows as a Markdown table."""
+    from ..commands.plot import _steps_label
+
+    def spread(stat: Mapping[str, Any], fmt: Callable[[float], str], row: Mapping[str, Any]) -> str:
+        if stat["min"] is None:
+            return "-"
+        median = "not held" if stat["median"] is None else fmt(stat["median"])
+        span = fmt(stat["min"]) if stat["min"] == stat["max"] else f"{fmt(stat['min'])}-{fmt(stat['max'])}"
+        later = row["n"] - row["held"]
+        return f"{median} ({span}{f'; {later} later than the budget' if later else ''})"
+
+    budget = rows[0]["setting"]["budget"] if rows else None
+    within = f"{_steps_label(budget['env_steps'])} env steps or {budget['minutes']:g} min" if budget else "the budget"
+    lines = [
+        f"| task group | contender | held within {within} | env steps to held: median (range) | "
+        "training minutes to held: median (range) | worst/mean transform at the last evaluation, per seed | "
+        "env steps/s |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        runs = row["runs"]
+        held = ", ".join(f"{run['seed']}" for run in runs if run["held"])
+        last = "; ".join(f"seed {run['seed']}: {run['last']['min_success']:.2f}/{run['last']['mean_success']:.2f} at "
+                         f"{_steps_label(run['last']['env_steps'] or 0)}" for run in runs)  # fmt: skip
+        rates = [run["steps_per_s"] for run in runs if _is_number(run["steps_per_s"])]
+        rate = "-" if not rates else f"{min(rates):.0f}" + (f"-{max(rates):.0f}" if max(rates) > min(rates) else "")
+        lines.append(
+            f"| {row['task']} | {row['contender']} | {row['held']} of {row['n']} (seeds {held or 'none'}) | "
+            f"{spread(row['env_steps_to_held'], _steps_label, row)} | "
+            f"{spread(row['minutes_to_held'], lambda m: f'{m:.1f}', row)} | {last} | {rate} |"
+        )
+    return "\n".join(lines)
+
+
+def _table(args: argparse.Namespace) -> int:
+    results = [(path, _load_result(path, "--table")) for path in args.table]
+    try:
+        rows = results_table(results)
+    except ValueError as e:
+        _fail(f"--table: {e}")
+    print(json.dumps(rows) if args.json else format_table(rows))
+    return 0
+
+
 # ---- the benchmark ---------------------------------------------------------------------------
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "table", None):
+        return _table(args)
     if getattr(args, "figure", None):
         return _figure(args)
     if getattr(args, "merge", None):
