@@ -788,16 +788,23 @@ def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
 
 
 def _resolve_base(name: Any, owner: Path) -> Path:
-    """The file a ``base:`` value in ``owner`` names: a file beside ``owner`` first, then a shipped config."""
+    """The file a ``base:`` value in ``owner`` names: a file beside ``owner`` first (or an absolute
+    path), then a shipped config (``stream_cpu``, ``stream_cpu.yaml`` or ``configs/stream_cpu.yaml``).
+    Never a file of the working directory: the same config means the same thing from anywhere."""
     if not isinstance(name, str) or not name.strip():
         raise ConfigError(f"config file {str(owner)!r}: {BASE_KEY} must name another config file, got {name!r}")
-    for candidate in (owner.parent / name, owner.parent / f"{name}.yaml"):
+    for candidate in (owner.parent / name, owner.parent / f"{name}.yaml"):  # an absolute name stays as it is
         if candidate.is_file():
             return candidate
-    try:
-        return resolve_config_path(name)
-    except ConfigError as e:
-        raise ConfigError(f"config file {str(owner)!r}: its {BASE_KEY} {name!r} was not found ({e})") from None
+    p = Path(name)
+    stem = p.name[: -len(".yaml")] if p.name.endswith(".yaml") else p.name
+    shipped = shipped_configs()
+    if stem in shipped and (len(p.parts) == 1 or (not p.is_absolute() and p.parent == Path("configs"))):
+        return shipped[stem]
+    raise ConfigError(
+        f"config file {str(owner)!r}: its {BASE_KEY} {name!r} was not found: no such file beside it "
+        f"({str(owner.parent)!r}) and no shipped config of that name (shipped: {', '.join(shipped) or 'none'})"
+    )
 
 
 def read_config_file(path: Path, _chain: tuple[Path, ...] = ()) -> dict[str, Any]:

@@ -117,6 +117,22 @@ def test_bad_base_keys_name_the_file(tmp_path, files, match):
         load_config(tmp_path / "a.yaml")
 
 
+def test_a_base_is_never_looked_for_in_the_working_directory(tmp_path, monkeypatch):
+    # a file of the same name in the directory a command runs from must not change what a config means
+    (tmp_path / "conf").mkdir()
+    owner = tmp_path / "conf" / "mine.yaml"
+    owner.write_text("base: parent\nseed: 3\n")
+    (tmp_path / "parent.yaml").write_text("seed: 5\n")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"mine.yaml.*its base 'parent' was not found: no such file beside it"):
+        load_config(owner)
+    # an absolute path and the repository path of a shipped config still work
+    owner.write_text(f"base: {tmp_path / 'parent.yaml'}\n")
+    assert load_config(owner).seed == 5
+    owner.write_text("base: configs/smoke.yaml\nseed: 4\n")
+    assert load_config(owner) == load_config("smoke", ["seed=4"])
+
+
 def test_overrides_parse_values_as_yaml():
     cfg = load_config(ROOT / "configs/smoke.yaml", ["ppo.lr=1e-4", "env.tasks=[reach, push]", "ppo.target_kl=null"])
     assert cfg.ppo.lr == 1e-4 and cfg.env.tasks == ["reach", "push"] and cfg.ppo.target_kl is None
