@@ -748,6 +748,16 @@ def shipped_configs() -> dict[str, Path]:
     return {p.stem: p for p in sorted(SHIPPED_CONFIG_DIR.glob("*.yaml"))}
 
 
+def _shipped_path(path: str | Path) -> Path | None:
+    """The shipped config a bare name (``quickstart``, ``quickstart.yaml``) or its repository path
+    (``configs/quickstart.yaml``) names, else None."""
+    p = Path(path)
+    name = p.name[: -len(".yaml")] if p.name.endswith(".yaml") else p.name
+    if len(p.parts) == 1 or (not p.is_absolute() and p.parent == Path("configs")):
+        return shipped_configs().get(name)
+    return None
+
+
 def resolve_config_path(path: str | Path) -> Path:
     """The YAML file a ``--config`` value names.
 
@@ -759,13 +769,11 @@ def resolve_config_path(path: str | Path) -> Path:
     p = Path(path)
     if p.is_file():
         return p
-    shipped = shipped_configs()
-    name = p.name[: -len(".yaml")] if p.name.endswith(".yaml") else p.name
-    bare = len(p.parts) == 1
-    if name in shipped and (bare or (not p.is_absolute() and p.parent == Path("configs"))):
-        return shipped[name]
-    names = ", ".join(shipped) or "none"
-    if bare:
+    shipped = _shipped_path(p)
+    if shipped is not None:
+        return shipped
+    names = ", ".join(shipped_configs()) or "none"
+    if len(p.parts) == 1:
         raise ConfigError(f"config {str(path)!r} does not exist: no such file and no shipped config of that name "
                           f"(shipped: {names})")
     raise ConfigError(f"config file {str(p)!r} does not exist (shipped configs, usable by name: {names})")
@@ -796,14 +804,12 @@ def _resolve_base(name: Any, owner: Path) -> Path:
     for candidate in (owner.parent / name, owner.parent / f"{name}.yaml"):  # an absolute name stays as it is
         if candidate.is_file():
             return candidate
-    p = Path(name)
-    stem = p.name[: -len(".yaml")] if p.name.endswith(".yaml") else p.name
-    shipped = shipped_configs()
-    if stem in shipped and (len(p.parts) == 1 or (not p.is_absolute() and p.parent == Path("configs"))):
-        return shipped[stem]
+    shipped = _shipped_path(name)
+    if shipped is not None:
+        return shipped
     raise ConfigError(
         f"config file {str(owner)!r}: its {BASE_KEY} {name!r} was not found: no such file beside it "
-        f"({str(owner.parent)!r}) and no shipped config of that name (shipped: {', '.join(shipped) or 'none'})"
+        f"({str(owner.parent)!r}) and no shipped config of that name (shipped: {', '.join(shipped_configs()) or 'none'})"
     )
 
 

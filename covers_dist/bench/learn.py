@@ -74,6 +74,7 @@ import argparse
 import json
 import math
 import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -773,6 +774,16 @@ def _check_curve(name: str, contender: str, entry: Mapping[str, Any]) -> None:
             raise ValueError(f"{name}: contender {contender!r}, curve point {i} lacks numeric {', '.join(bad)}")
 
 
+def _check_result(label: str, res: Mapping[str, Any]) -> None:
+    """Raise ``ValueError`` unless ``res`` has a task, a threshold and contenders, each contender
+    that is an object and did not fail with a complete curve."""
+    if not isinstance(res.get("contenders"), Mapping) or "task" not in res or "threshold" not in res:
+        raise ValueError(f"{label}: not a bench learn result (no task, threshold or contenders)")
+    for contender, entry in res["contenders"].items():
+        if isinstance(entry, Mapping) and "error" not in entry:
+            _check_curve(label, contender, entry)
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
@@ -829,11 +840,7 @@ def results_figure(results: Sequence[tuple[str, Mapping[str, Any]]], path: str |
 
     tasks: list[str] = []
     for label, res in results:
-        if not isinstance(res.get("contenders"), Mapping) or "task" not in res or "threshold" not in res:
-            raise ValueError(f"{label}: not a bench learn result (no task, threshold or contenders)")
-        for contender, entry in res["contenders"].items():
-            if isinstance(entry, Mapping) and "error" not in entry:
-                _check_curve(label, contender, entry)
+        _check_result(label, res)
         tasks += [res["task"]] if res["task"] not in tasks else []
     per_task = [sum(len(res["contenders"]) for _, res in results if res["task"] == t) for t in tasks]
     below = max(per_task) > LEGEND_INSIDE  # many curves: the legend goes under the axes, the figure grows
@@ -905,11 +912,7 @@ def _setting(res: Mapping[str, Any]) -> dict[str, Any]:
 def _censored_median(values: Sequence[float], runs: int) -> float:
     """The median of ``runs`` times to held, ``values`` of them observed and the rest later than any
     of them (not held within the budget): ``inf`` when half the runs or more did not hold."""
-    ordered = sorted(values) + [math.inf] * (runs - len(values))
-    middle = len(ordered) // 2
-    if len(ordered) % 2:
-        return ordered[middle]
-    return (ordered[middle - 1] + ordered[middle]) / 2
+    return statistics.median([*values, *[math.inf] * (runs - len(values))])
 
 
 def results_table(results: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict[str, Any]]:
@@ -922,8 +925,7 @@ def results_table(results: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict
     rows: dict[tuple[str, str], dict[str, Any]] = {}
     first: tuple[str, dict[str, Any]] | None = None
     for source, res in results:
-        if not isinstance(res.get("contenders"), Mapping) or "task" not in res or "threshold" not in res:
-            raise ValueError(f"{source}: not a bench learn result (no task, threshold or contenders)")
+        _check_result(source, res)
         setting = _setting(res)
         if first is None:
             first = (source, setting)
@@ -936,11 +938,11 @@ def results_table(results: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict
                 raise ValueError(f"{source}: not a bench learn result (contender {contender!r} is not an object)")
             if "error" in entry:
                 continue
-            _check_curve(source, contender, entry)
             if entry.get("reached") and not (_is_number(entry.get("env_steps_to_threshold"))
                                              and _is_number(entry.get("wall_s_to_threshold"))):  # fmt: skip
                 raise ValueError(f"{source}: contender {contender!r} held but has no env steps or time to held")
-            row = rows.setdefault((res["task"], contender), {"task": res["task"], "contender": contender, "runs": []})
+            row = rows.setdefault((res["task"], contender),
+                                  {"task": res["task"], "contender": contender, "setting": setting, "runs": []})  # fmt: skip
             seed = res.get("seed")
             if any(run["seed"] == seed for run in row["runs"]):
                 raise ValueError(f"{source}: seed {seed} of {res['task']} {contender} appears in more than one result")
@@ -963,9 +965,6 @@ def results_table(results: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict
                 "min": min(values) if values else None,
                 "max": max(values) if values else None,
             }
-    if first is not None:
-        for row in rows.values():
-            row["setting"] = first[1]
     return list(rows.values())
 
 
