@@ -215,6 +215,15 @@ class PPOConfig:
         "Entropy-bonus schedule over updates: constant (ent_coef throughout) or linear (ent_coef at update 0 "
         "falling to 0 at ppo.total_updates, 0 after): exploration early, none once the group is learned.",
     )
+    noise_beta: float = _f(
+        0.0,
+        "Colour of the training episodes' action noise: each episode draws its standard-normal noise with a "
+        "1/f^beta power spectrum (covers_dist/ppo/noise.py), so every step is still N(mean, std) but the noise "
+        "of consecutive steps points the same way for longer. 0: white, independent per step (the default); "
+        "1: pink; 2: red. Evaluation's stochastic mode keeps white noise.",
+        min=0.0,
+        max=2.0,
+    )
     vf_coef: float = _f(0.5, "Value loss coefficient.", min=0.0)
     epochs: int = _f(4, "Optimization epochs per update.", min=1)
     minibatch_size: int = _f(256, "Samples per minibatch.", min=1)

@@ -183,13 +183,19 @@ class ActorCritic(nn.Module):
 
     @torch.no_grad()
     def act(
-        self, obs_np: Mapping[str, Any], deterministic: bool = False, generator: torch.Generator | None = None
+        self,
+        obs_np: Mapping[str, Any],
+        deterministic: bool = False,
+        generator: torch.Generator | None = None,
+        noise: torch.Tensor | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Sample actions for a batch of numpy observations (rollout workers).
 
         Returns ``(actions float32 (B, A), log_probs float32 (B,), values float32 (B,))``; with
         ``deterministic`` the actions are the means (log-probs are still those of the Gaussian).
-        Runs the exported core under ``torch.no_grad``; ``generator`` makes sampling reproducible.
+        Runs the exported core under ``torch.no_grad``; ``generator`` makes sampling reproducible;
+        ``noise`` (B, A), standard normal, replaces the noise drawn here (coloured noise,
+        :mod:`covers_dist.ppo.noise`).
         """
         img, proprio = self.prepare(self._numpy_obs(obs_np))
         mean, value, _ = self.fast_core()(img.contiguous(memory_format=torch.channels_last), proprio)
@@ -198,7 +204,10 @@ class ActorCritic(nn.Module):
         if deterministic:
             actions = mean
         else:
-            noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+            if noise is None:
+                noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+            elif tuple(noise.shape) != tuple(mean.shape):
+                raise ValueError(f"noise must have shape {tuple(mean.shape)}, got {tuple(noise.shape)}")
             actions = mean + noise.to(mean.device) * log_std.exp()
         logp = gaussian_log_prob(actions, mean, log_std)
         return (

@@ -15,6 +15,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from .noise import NoiseSequences
+
 __all__ = ["collect_episodes", "run_lockstep", "success_rate"]
 
 
@@ -50,15 +52,22 @@ def run_lockstep(
     seeds: Sequence[int],
     generator: torch.Generator | None = None,
     deterministic: bool = False,
+    noise_beta: float = 0.0,
+    noise_steps: int = 100,
 ) -> list[dict[str, Any]]:
     """One full episode per env, stepped together (one batched ``model.act`` per step).
 
     Env ``i`` is reset with ``seeds[i]``. Returns Episode dicts (with ``task`` and ``g`` read from
-    the envs); the rollout workers of the runtime add their own metadata.
+    the envs); the rollout workers of the runtime add their own metadata. ``noise_beta > 0``
+    samples with coloured noise (:mod:`covers_dist.ppo.noise`): one sequence of ``noise_steps``
+    steps per env, drawn from ``generator`` at the start (0: white noise drawn per step by the model).
     """
     n = len(envs)
     if len(seeds) != n:
         raise ValueError(f"need one seed per env, got {len(seeds)} seeds for {n} envs")
+    coloured = None
+    if noise_beta > 0.0 and not deterministic:
+        coloured = NoiseSequences(noise_beta, noise_steps, envs[0].action_space.shape[0], n, generator)
     obs = [env.reset(seed=int(s))[0] for env, s in zip(envs, seeds)]
     logs: list[dict[str, list]] = [
         {"image": [o["image"]], "proprio": [o["proprio"]], "action": [], "logprob": [], "value": [], "reward": [],
@@ -73,7 +82,11 @@ def run_lockstep(
             "image": np.stack([obs[i]["image"] for i in live]),
             "proprio": np.stack([obs[i]["proprio"] for i in live]),
         }
-        actions, logps, values = model.act(batch, deterministic=deterministic, generator=generator)
+        if coloured is None:
+            actions, logps, values = model.act(batch, deterministic=deterministic, generator=generator)
+        else:
+            noise = torch.stack([coloured.take(i, len(logs[i]["action"])) for i in live])
+            actions, logps, values = model.act(batch, generator=generator, noise=noise)
         for j, i in enumerate(live):
             o, r, term, trunc, info = envs[i].step(actions[j])
             log = logs[i]

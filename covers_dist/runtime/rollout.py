@@ -191,7 +191,15 @@ class RolloutWorker:
         if seeds is None:
             seeds = training_seeds(self.cfg.seed, specs)
         gen = torch.Generator().manual_seed(int(seeds[0]) % (2**63))
-        episodes = run_lockstep(self.model, envs, seeds, gen, deterministic)
+        episodes = run_lockstep(
+            self.model,
+            envs,
+            seeds,
+            gen,
+            deterministic,
+            noise_beta=self.cfg.ppo.noise_beta,
+            noise_steps=self.cfg.env.max_episode_steps,
+        )
         for ep, spec in zip(episodes, specs):
             self.env_steps += len(ep["reward"])
             ep.update(

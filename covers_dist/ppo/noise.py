@@ -1,0 +1,72 @@
+"""Temporally correlated (coloured) Gaussian action noise for exploration.
+
+A Gaussian policy usually draws its exploration noise afresh at every step (white noise): over
+an episode the hand then wanders like a random walk and rarely moves far in one direction.
+Coloured noise keeps the marginal of every step a standard normal, so an action is still
+distributed as ``N(mean, std)`` and PPO's log-probabilities and ratios are unchanged, but draws
+the sequence of one episode with a power spectrum ``1 / f**beta``: ``beta = 0`` is white noise,
+``beta = 1`` pink, ``beta = 2`` red (Brownian-like). Low frequencies carry more of the variance as
+``beta`` grows, so the noise of consecutive steps points the same way for longer (Eberhard et al.,
+"Pink Noise Is All You Need", ICLR 2023, found pink noise a good default for continuous control).
+
+Plain module: torch only, no runtime imports.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["coloured_noise", "NoiseSequences"]
+
+
+def coloured_noise(beta: float, steps: int, dims: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """A ``(steps, dims)`` float32 tensor: ``dims`` independent sequences of ``steps`` standard
+    normal samples whose power spectrum falls as ``1 / f**beta``.
+
+    Every entry is exactly ``N(0, 1)`` (a linear map of independent normals, scaled by its exact
+    standard deviation); ``beta = 0`` draws plain independent normals.
+    """
+    if not beta >= 0.0:
+        raise ValueError(f"beta must be >= 0, got {beta!r}")
+    if steps < 1 or dims < 1:
+        raise ValueError(f"need steps >= 1 and dims >= 1, got {steps} and {dims}")
+    if beta == 0.0 or steps == 1:
+        return torch.randn(steps, dims, generator=generator)
+    freqs = torch.fft.rfftfreq(steps, dtype=torch.float64)  # 0, 1/steps, ..., 1/2
+    freqs[0] = freqs[1]  # the mean's component gets the lowest frequency's weight
+    scale = freqs ** (-beta / 2.0)
+    n = len(freqs)
+    real = torch.randn(n, dims, generator=generator, dtype=torch.float64)
+    imag = torch.randn(n, dims, generator=generator, dtype=torch.float64)
+    imag[0] = 0.0  # the mean is real
+    # each entry of irfft(X) is (1/steps) * (X_0 + 2 Re sum_k X_k e^{...} [+ X_nyq (-1)^t]);
+    # its variance from the scaled components, so every entry can be made exactly N(0, 1)
+    weights = torch.full((n,), 4.0, dtype=torch.float64)
+    weights[0] = 1.0
+    if steps % 2 == 0:
+        imag[-1] = 0.0  # the Nyquist component is real too
+        weights[-1] = 1.0
+    std = torch.sqrt((weights * scale**2).sum()) / steps
+    spectrum = torch.complex(real, imag) * scale[:, None]
+    x = torch.fft.irfft(spectrum, n=steps, dim=0) / std
+    return x.to(torch.float32)
+
+
+class NoiseSequences:
+    """One coloured-noise sequence per environment of a lockstep batch, drawn at the episode's
+    start; ``take(i, t)`` is env ``i``'s standard-normal noise vector for its step ``t``.
+
+    An episode that runs past ``steps`` gets a fresh sequence appended (the sequences are drawn in
+    env order, so a generator fixes them all).
+    """
+
+    def __init__(self, beta: float, steps: int, dims: int, envs: int, generator: torch.Generator | None) -> None:
+        self.beta, self.steps, self.dims = float(beta), int(steps), int(dims)
+        self.generator = generator
+        self._seqs = [coloured_noise(self.beta, self.steps, self.dims, generator) for _ in range(envs)]
+
+    def take(self, i: int, t: int) -> torch.Tensor:
+        while t >= len(self._seqs[i]):
+            more = coloured_noise(self.beta, self.steps, self.dims, self.generator)
+            self._seqs[i] = torch.cat([self._seqs[i], more])
+        return self._seqs[i][t]
