@@ -72,6 +72,7 @@ def learn(capsys, monkeypatch):
         (["--contenders", "covers,sb3", "--set", "ppo.log_std_cap=-1.0"], ["ppo.log_std_cap", "sb3"]),
         (["--contenders", "covers,rllib-cnn", "--set", "ppo.ent_schedule=linear"], ["ppo.ent_schedule=linear", "rllib-cnn"]),
         (["--contenders", "covers,rllib-equi", "--set", "network.critic=separate"], ["network.critic", "rllib-equi"]),
+        (["--contenders", "covers,sb3", "--set", "ppo.noise_beta=1"], ["ppo.noise_beta=1.0", "sb3"]),
     ],
 )
 def test_bad_arguments_are_one_line_errors(learn, argv, words):

@@ -366,6 +366,7 @@ class _CoversContender:
             **({} if cfg.ppo.log_std_cap is None else {"log_std_cap": float(cfg.ppo.log_std_cap)}),
             **({} if cfg.ppo.ent_schedule == "constant" else {"ent_schedule": cfg.ppo.ent_schedule}),
             **({} if cfg.ppo.kl_reference == "behaviour" else {"kl_reference": cfg.ppo.kl_reference}),
+            **({} if cfg.ppo.noise_beta == 0.0 else {"noise_beta": float(cfg.ppo.noise_beta)}),
         }
 
     def close(self) -> None:
@@ -1045,6 +1046,7 @@ def run(args: argparse.Namespace) -> int:
     own += [f"network.critic={cfg0.network.critic}"] * (cfg0.network.critic != "shared")
     own += [f"ppo.ent_schedule={cfg0.ppo.ent_schedule}"] * (cfg0.ppo.ent_schedule != "constant")
     own += [f"ppo.kl_reference={cfg0.ppo.kl_reference}"] * (cfg0.ppo.kl_reference != "behaviour")
+    own += [f"ppo.noise_beta={cfg0.ppo.noise_beta}"] * (cfg0.ppo.noise_beta != 0.0)
     if own and peers:
         _fail(
             f"{', '.join(own)}: covers-dist's contenders only; the peers {peers} would train without it. "

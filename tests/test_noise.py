@@ -1,0 +1,130 @@
+"""Coloured action noise (ppo.noise_beta): every step stays N(0, 1), the spectrum falls as
+1/f^beta, and the rollout workers use exactly the drawn sequences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from covers_dist.config import ConfigError, NetworkConfig
+from covers_dist.envs.toy import ToyTask, toy_layout
+from covers_dist.models import build_actor_critic, gaussian_log_prob
+from covers_dist.ppo.noise import NoiseSequences, coloured_noise
+from covers_dist.ppo.rollout import run_lockstep
+from covers_dist.runtime.rollout import EpisodeSpec, RolloutWorker
+
+from test_runtime_serial import tiny_cfg
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _draws(beta: float, n: int = 4000, steps: int = 64, seed: int = 0) -> np.ndarray:
+    gen = torch.Generator().manual_seed(seed)
+    return torch.stack([coloured_noise(beta, steps, 1, gen)[:, 0] for _ in range(n)]).numpy().astype(np.float64)
+
+
+@pytest.mark.parametrize("beta", [0.0, 0.5, 1.0, 2.0])
+@pytest.mark.parametrize("steps", [64, 75])  # an even length has a Nyquist term, an odd one none
+def test_every_step_is_a_standard_normal(beta, steps):
+    x = _draws(beta, steps=steps)
+    var = x.var(axis=0)  # over 4000 sequences, per step: the standard error of each is ~0.022
+    assert np.all(np.abs(x.mean(axis=0)) < 0.1)
+    assert 0.9 < var.min() and var.max() < 1.1
+    assert abs(np.mean(np.abs(x) < 1.0) - 0.6827) < 0.01  # a normal's mass within one std
+
+
+def test_white_noise_is_plain_independent_normals():
+    a = coloured_noise(0.0, 50, 3, torch.Generator().manual_seed(7))
+    b = torch.randn(50, 3, generator=torch.Generator().manual_seed(7))
+    assert torch.equal(a, b)
+
+
+def test_the_spectrum_falls_as_one_over_f_to_the_beta():
+    lag1 = {}
+    for beta in (0.0, 1.0, 2.0):
+        x = _draws(beta, n=2000, steps=128)
+        lag1[beta] = float(np.mean(x[:, 1:] * x[:, :-1]))
+        power = (np.abs(np.fft.rfft(x, axis=1)) ** 2).mean(axis=0)[1:]
+        freqs = np.fft.rfftfreq(128)[1:]
+        slope = np.polyfit(np.log(freqs[:-1]), np.log(power[:-1]), 1)[0]  # Nyquist term excluded: real only
+        assert slope == pytest.approx(-beta, abs=0.1)
+    assert abs(lag1[0.0]) < 0.05 and 0.5 < lag1[1.0] < 0.9 and lag1[2.0] > 0.95
+
+
+def test_same_generator_same_noise_and_bad_arguments():
+    a = coloured_noise(1.0, 40, 4, torch.Generator().manual_seed(3))
+    b = coloured_noise(1.0, 40, 4, torch.Generator().manual_seed(3))
+    assert a.shape == (40, 4) and a.dtype == torch.float32 and torch.equal(a, b)
+    with pytest.raises(ValueError, match="beta must be >= 0"):
+        coloured_noise(-1.0, 10, 2)
+    with pytest.raises(ValueError, match="beta must be >= 0"):
+        coloured_noise(float("nan"), 10, 2)
+    with pytest.raises(ValueError, match="steps >= 1"):
+        coloured_noise(1.0, 0, 2)
+
+
+def test_sequences_run_on_past_their_length():
+    seqs = NoiseSequences(1.0, 8, 2, envs=3, generator=torch.Generator().manual_seed(0))
+    late = seqs.take(1, 20)  # a third block of env 1
+    assert late.shape == (2,) and len(seqs._seqs[1]) == 24 and len(seqs._seqs[0]) == 8
+    again = NoiseSequences(1.0, 8, 2, envs=3, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(again.take(1, 20), late) and torch.equal(again.take(2, 3), seqs.take(2, 3))
+
+
+def _model_and_envs(n: int = 3, steps: int = 12):
+    model = build_actor_critic(NetworkConfig(channels=[2, 2, 2, 2], hidden=4), toy_layout(16), seed=1)
+    model.eval()
+    envs = [ToyTask("reach", "e", image_size=16, max_episode_steps=steps) for _ in range(n)]
+    return model, envs
+
+
+def test_lockstep_actions_are_the_mean_plus_std_times_the_drawn_sequences():
+    model, envs = _model_and_envs()
+    seeds = [10, 11, 12]
+    eps = run_lockstep(model, envs, seeds, torch.Generator().manual_seed(5), noise_beta=1.0, noise_steps=12)
+    expected = NoiseSequences(1.0, 12, envs[0].action_space.shape[0], 3, torch.Generator().manual_seed(5))
+    std = model.log_std().exp().detach()
+    for i, ep in enumerate(eps):
+        obs = {"image": ep["image"][:-1], "proprio": ep["proprio"][:-1]}
+        means = torch.from_numpy(model.act(obs, deterministic=True)[0])
+        noise = torch.stack([expected.take(i, t) for t in range(len(ep["action"]))])
+        torch.testing.assert_close(torch.from_numpy(ep["action"]), means + noise * std, rtol=1e-5, atol=1e-5)
+        # the log-probabilities are the Gaussian's of the actions taken, as with white noise
+        logp = gaussian_log_prob(torch.from_numpy(ep["action"]), means, model.log_std().detach().expand_as(means))
+        torch.testing.assert_close(torch.from_numpy(ep["logprob"]), logp, rtol=1e-4, atol=1e-4)
+    again = run_lockstep(model, envs, seeds, torch.Generator().manual_seed(5), noise_beta=1.0, noise_steps=12)
+    white = run_lockstep(model, envs, seeds, torch.Generator().manual_seed(5))
+    for a, b, w in zip(eps, again, white):
+        np.testing.assert_array_equal(a["action"], b["action"])
+        assert not np.array_equal(a["action"], w["action"])
+    greedy = run_lockstep(model, envs, seeds, None, deterministic=True, noise_beta=1.0, noise_steps=12)
+    plain = run_lockstep(model, envs, seeds, None, deterministic=True)
+    for g, p in zip(greedy, plain):  # greedy acting ignores the noise
+        np.testing.assert_array_equal(g["action"], p["action"])
+
+
+def test_act_checks_the_noise_shape():
+    model, envs = _model_and_envs(n=1)
+    obs, _ = envs[0].reset(seed=0)
+    batch = {"image": obs["image"][None], "proprio": obs["proprio"][None]}
+    with pytest.raises(ValueError, match="noise must have shape"):
+        model.act(batch, noise=torch.zeros(1, 7))
+
+
+def test_rollout_workers_sample_with_the_configured_colour(tmp_path):
+    specs = [EpisodeSpec(i, "reach", "e", 0) for i in range(4)]
+    actions = {}
+    for beta in (0.0, 1.0, 1.0):
+        cfg = tiny_cfg(tmp_path, f"ppo.noise_beta={beta}")
+        worker = RolloutWorker(cfg, 0)
+        model = build_actor_critic(cfg.network, worker.layout, seed=0)
+        eps = worker.sample(specs, 0, 1, model.get_weights())
+        worker.close()
+        got = np.concatenate([e["action"] for e in eps])
+        if beta in actions:
+            np.testing.assert_array_equal(actions[beta], got)  # same seed, same noise
+        actions[beta] = got
+    assert not np.array_equal(actions[0.0], actions[1.0])
+    with pytest.raises(ConfigError, match="ppo.noise_beta"):
+        tiny_cfg(tmp_path, "ppo.noise_beta=2.5")
