@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -128,3 +130,26 @@ def test_rollout_workers_sample_with_the_configured_colour(tmp_path):
     assert not np.array_equal(actions[0.0], actions[1.0])
     with pytest.raises(ConfigError, match="ppo.noise_beta"):
         tiny_cfg(tmp_path, "ppo.noise_beta=2.5")
+
+
+def test_bench_explore_runs_white_first_and_coloured_noise_lifts_the_hand(capsys):
+    from covers_dist.cli import main
+
+    argv = ["bench", "explore", "--task", "button-press-topdown-v3", "--betas", "2", "--stds", "1.0", "--episodes", "8",
+            "--steps", "150", "--json"]  # fmt: skip
+    assert main(argv) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    assert [r["beta"] for r in rows] == [0.0, 2.0]  # white added as the baseline
+    for r in rows:
+        assert r["episodes"] == 8 and r["success_rate"] == pytest.approx(r["successes"] / 8, abs=1e-4)
+        assert r["ci95"][0] <= r["success_rate"] <= r["ci95"][1]
+    # white noise averages out along the episode; red noise moves the hand up and down for whole stretches
+    assert rows[1]["hand_rise_m_median"] > 2 * rows[0]["hand_rise_m_median"]
+    for bad, words in (
+        (["--task", "button-press-v9"], "unknown Meta-World task"),
+        (["--betas", "3"], "--betas values must lie in"),
+        (["--stds", "x"], "--stds needs numbers"),
+        (["--episodes", "0"], "--episodes and --steps must be >= 1"),
+    ):
+        with pytest.raises(SystemExit, match=words):
+            main(["bench", "explore", *bad])
