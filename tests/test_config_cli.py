@@ -82,6 +82,16 @@ def test_stream_fast_builds_on_stream_cpu_by_its_base_key():
     assert data["base"] == "stream_cpu" and "clustering" not in data and "ppo" not in data
 
 
+def test_group_fast_is_quickstart_with_the_measured_overrides():
+    # docs/learning.md's per-group runs with pink noise ran `bench learn` (on quickstart) with these
+    measured = ["ppo.epochs=4", "ppo.minibatch_size=200", "network.init_log_std=0.0", "clustering.feature_source=colors",
+                "env.max_episode_steps=150", "ppo.target_kl=0.01", "ppo.kl_reference=update_start",
+                "clustering.assign_at=reset", "clustering.false_split_rate=1e-4", "env.success_bonus=100",
+                "env.success_bonus_once=true", "env.success_bonus_radius=0.5", "network.space_to_depth=4",
+                "ppo.noise_beta=1.0", "runtime.run_dir=runs/group-fast", "name=group-fast"]  # fmt: skip
+    assert load_config("group_fast") == load_config("quickstart", measured)
+
+
 def test_a_base_file_gives_every_value_the_file_does_not_set(tmp_path):
     (tmp_path / "parent.yaml").write_text(
         "seed: 5\nppo:\n  lr: 1.0e-4\n  epochs: 7\nnetwork:\n  channels: [4, 8, 8, 16, 16, 16]\n"
