@@ -83,12 +83,12 @@ def test_stream_fast_builds_on_stream_cpu_by_its_base_key():
 
 
 def test_group_fast_is_quickstart_with_the_measured_overrides():
-    # docs/learning.md's per-group runs with pink noise ran `bench learn` (on quickstart) with these
+    # docs/learning.md's per-group runs with stream_fast's settings ran `bench learn` (on quickstart) with these
     measured = ["ppo.epochs=4", "ppo.minibatch_size=200", "network.init_log_std=0.0", "clustering.feature_source=colors",
                 "env.max_episode_steps=150", "ppo.target_kl=0.01", "ppo.kl_reference=update_start",
                 "clustering.assign_at=reset", "clustering.false_split_rate=1e-4", "env.success_bonus=100",
                 "env.success_bonus_once=true", "env.success_bonus_radius=0.5", "network.space_to_depth=4",
-                "ppo.noise_beta=1.0", "runtime.run_dir=runs/group-fast", "name=group-fast"]  # fmt: skip
+                "runtime.run_dir=runs/group-fast", "name=group-fast"]  # fmt: skip
     assert load_config("group_fast") == load_config("quickstart", measured)
 
 
