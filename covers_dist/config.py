@@ -224,6 +224,15 @@ class PPOConfig:
         min=0.0,
         max=2.0,
     )
+    noise_fade_success: float | None = _f(
+        None,
+        "A policy's noise turns white as it succeeds: its colour is noise_beta * max(0, 1 - s / this), s its "
+        "training success over the last 64 episodes it acted (covers_dist/ppo/noise.py, faded_beta), so a new "
+        "policy searches with coloured noise and a policy that succeeds this often samples white noise. null: "
+        "every policy keeps noise_beta.",
+        gt=0.0,
+        max=1.0,
+    )
     vf_coef: float = _f(0.5, "Value loss coefficient.", min=0.0)
     epochs: int = _f(4, "Optimization epochs per update.", min=1)
     minibatch_size: int = _f(256, "Samples per minibatch.", min=1)

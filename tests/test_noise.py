@@ -1,5 +1,6 @@
 """Coloured action noise (ppo.noise_beta): every step stays N(0, 1), the spectrum falls as
-1/f^beta, and the rollout workers use exactly the drawn sequences."""
+1/f^beta, the rollout workers use exactly the drawn sequences, and a policy's colour fades to
+white as its own training episodes succeed (ppo.noise_fade_success)."""
 
 from __future__ import annotations
 
@@ -12,9 +13,11 @@ import torch
 from covers_dist.config import ConfigError, NetworkConfig
 from covers_dist.envs.toy import ToyTask, toy_layout
 from covers_dist.models import build_actor_critic, gaussian_log_prob
-from covers_dist.ppo.noise import NoiseSequences, coloured_noise
+from covers_dist.ppo.noise import FADE_WINDOW, NoiseSequences, coloured_noise, faded_beta
 from covers_dist.ppo.rollout import run_lockstep
+from covers_dist.runtime.driver import Trainer
 from covers_dist.runtime.rollout import EpisodeSpec, RolloutWorker
+from covers_dist.runtime.tally import EpisodeTally
 
 from test_runtime_serial import tiny_cfg
 
@@ -130,6 +133,95 @@ def test_rollout_workers_sample_with_the_configured_colour(tmp_path):
     assert not np.array_equal(actions[0.0], actions[1.0])
     with pytest.raises(ConfigError, match="ppo.noise_beta"):
         tiny_cfg(tmp_path, "ppo.noise_beta=2.5")
+
+
+def test_the_colour_fades_linearly_with_the_policy_success(tmp_path):
+    assert faded_beta(1.0, None, [1.0] * 10) == 1.0  # no fade configured
+    assert faded_beta(1.0, 0.2, []) == 1.0  # a new policy searches with the full colour
+    assert faded_beta(0.0, 0.2, [0.0] * 10) == 0.0  # white stays white
+    assert faded_beta(1.0, 0.2, [0.0] * 10) == 1.0
+    assert faded_beta(1.0, 0.2, [1.0] + [0.0] * 9) == pytest.approx(0.5)  # 10% of the way's 20%
+    assert faded_beta(2.0, 0.2, [1.0, 0.0, 0.0, 0.0, 0.0]) == 0.0  # at the rate: white
+    assert faded_beta(1.0, 0.2, [1.0] * 10) == 0.0  # past it: still white, never negative
+    with pytest.raises(ValueError, match="fade_success"):
+        faded_beta(1.0, 0.0, [1.0])
+    for bad in ("0", "1.5"):
+        with pytest.raises(ConfigError, match="ppo.noise_fade_success"):
+            tiny_cfg(tmp_path, f"ppo.noise_fade_success={bad}")
+
+
+def test_the_tally_keeps_each_acting_policy_s_last_successes():
+    tally = EpisodeTally(["reach"])
+    rows = [{"task": "reach", "episode_index": i, "length": 10, "return": 0.0, "success": float(i % 4 == 0),
+             "policy_id": 1 if i < 70 else 2} for i in range(80)]  # fmt: skip
+    tally.record(rows, assigned=1)
+    assert len(tally.policy_success[1]) == FADE_WINDOW  # the last 64 of its 70
+    assert tally.policy_success[1] == [float(i % 4 == 0) for i in range(70 - FADE_WINDOW, 70)]
+    assert tally.policy_success[2] == [float(i % 4 == 0) for i in range(70, 80)]  # by the policy that acted
+
+
+def _noise_column(run_dir):
+    return [json.loads(line).get("noise_beta") for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+FADE = ["env.tasks=[reach]", "ppo.noise_beta=1.0", "ppo.noise_fade_success=0.25"]
+
+
+@pytest.fixture(scope="module")
+def faded_run(tmp_path_factory):
+    """One serial run of the toy reach group with a fading colour (2400 env steps): its directory."""
+    clean = tmp_path_factory.mktemp("faded")
+    trainer = Trainer(tiny_cfg(clean, "runtime.total_env_steps=2400", *FADE), log=lambda *_: None)
+    trainer.run()
+    trainer.close()
+    return clean
+
+
+def test_the_loop_samples_each_batch_with_its_policy_s_faded_colour(faded_run, tmp_path):
+    fade, clean = FADE, faded_run
+    rows = [json.loads(line) for line in (clean / "metrics.jsonl").read_text().splitlines()]
+    episodes = [json.loads(line) for line in (clean / "episodes.jsonl").read_text().splitlines()]
+    for row in rows:  # the colour from the episodes the acting policy ran before this batch
+        before = [e["success"] for e in episodes if e["iteration"] < row["iteration"]
+                  and e["policy_id"] == row["policy_id"]][-FADE_WINDOW:]  # fmt: skip
+        expected = 1.0 if not before else max(0.0, 1.0 - (sum(s > 0 for s in before) / len(before)) / 0.25)
+        assert row["noise_beta"] == pytest.approx(expected)
+    betas = _noise_column(clean)
+    assert betas[0] == 1.0 and min(betas) < 1.0  # the toy reach succeeds from the first batches on
+    # killed and resumed from its checkpoints, the run samples with the same colours
+    resumed = tmp_path / "resumed"
+    first = Trainer(tiny_cfg(resumed, "runtime.total_env_steps=1200", "runtime.checkpoint_every=1", *fade),
+                    log=lambda *_: None)  # fmt: skip
+    first.run()
+    first.close()
+    second = Trainer(tiny_cfg(resumed, "runtime.total_env_steps=2400", *fade), resume=True, log=lambda *_: None)
+    second.run()
+    second.close()
+    assert _noise_column(resumed) == betas
+    assert (resumed / "episodes.jsonl").read_text() == (clean / "episodes.jsonl").read_text()
+
+
+def test_ray_workers_sample_with_the_faded_colour_as_the_serial_loop(ray_local, faded_run, tmp_path):
+    trainer = Trainer(tiny_cfg(tmp_path, "runtime.total_env_steps=2400", "runtime.serial=false", *FADE),
+                      log=lambda *_: None)  # fmt: skip
+    trainer.run()
+    trainer.close()
+    assert _noise_column(tmp_path) == _noise_column(faded_run)
+    assert (tmp_path / "episodes.jsonl").read_text() == (faded_run / "episodes.jsonl").read_text()
+
+
+def test_a_worker_samples_with_the_colour_it_is_given(tmp_path):
+    specs = [EpisodeSpec(i, "reach", "e", 0) for i in range(4)]
+    got = {}
+    for name, setting, given in (("pink", 1.0, None), ("given", 0.0, 1.0), ("white", 1.0, 0.0)):
+        worker = RolloutWorker(tiny_cfg(tmp_path, f"ppo.noise_beta={setting}"), 0)
+        model = build_actor_critic(worker.cfg.network, worker.layout, seed=0)
+        got[name] = np.concatenate([e["action"] for e in worker.sample(specs, 0, 1, model.get_weights(), noise_beta=given)])
+        with pytest.raises(ValueError, match="noise_beta must be in"):
+            worker.sample(specs, 0, 1, model.get_weights(), noise_beta=2.5)
+        worker.close()
+    np.testing.assert_array_equal(got["pink"], got["given"])  # the given colour, not the config's
+    assert not np.array_equal(got["pink"], got["white"])
 
 
 def test_bench_explore_runs_white_first_and_coloured_noise_lifts_the_hand(capsys):

@@ -9,6 +9,10 @@ the sequence of one episode with a power spectrum ``1 / f**beta``: ``beta = 0`` 
 ``beta`` grows, so the noise of consecutive steps points the same way for longer (Eberhard et al.,
 "Pink Noise Is All You Need", ICLR 2023, found pink noise a good default for continuous control).
 
+Coloured noise helps a policy find a success that lies off its mean's path and can slow one whose
+success asks for precision (docs/learning.md); :func:`faded_beta` lets the colour fade to white
+as a policy's own training episodes succeed, so one setting can serve both.
+
 Plain module: torch only, no runtime imports.
 """
 
@@ -16,7 +20,10 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["coloured_noise", "NoiseSequences"]
+__all__ = ["FADE_WINDOW", "coloured_noise", "faded_beta", "NoiseSequences"]
+
+#: Training episodes of a policy whose success fades its colour (``ppo.noise_fade_success``).
+FADE_WINDOW = 64
 
 
 def coloured_noise(beta: float, steps: int, dims: int, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -50,6 +57,20 @@ def coloured_noise(beta: float, steps: int, dims: int, generator: torch.Generato
     spectrum = torch.complex(real, imag) * scale[:, None]
     x = torch.fft.irfft(spectrum, n=steps, dim=0) / std
     return x.to(torch.float32)
+
+
+def faded_beta(beta: float, fade_success: float | None, successes: list[float]) -> float:
+    """The colour a policy samples with: ``beta`` faded linearly to white as its success rate over
+    ``successes`` (its latest training episodes, 1 or 0 each) rises to ``fade_success``.
+
+    ``fade_success`` None keeps ``beta``; a policy with no episodes yet gets ``beta``.
+    """
+    if fade_success is None or beta == 0.0 or not successes:
+        return float(beta)
+    if not fade_success > 0.0:
+        raise ValueError(f"fade_success must be > 0 or None, got {fade_success!r}")
+    rate = sum(1.0 for s in successes if s > 0.0) / len(successes)
+    return float(beta) * max(0.0, 1.0 - rate / fade_success)
 
 
 class NoiseSequences:

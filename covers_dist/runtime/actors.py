@@ -54,8 +54,8 @@ class _RolloutHost(RolloutWorker):
         super().__init__(cfg, worker_index)
         _announce(storage, "eval" if worker_index >= EVAL_WORKER_INDEX else "worker", worker_index)
 
-    def sample_split(self, specs, policy_id, version, handle, k):  # noqa: ANN001
-        episodes = self.sample(specs, policy_id, version, handle)
+    def sample_split(self, specs, policy_id, version, handle, k, noise_beta=None):  # noqa: ANN001
+        episodes = self.sample(specs, policy_id, version, handle, noise_beta=noise_beta)
         firsts, summaries = split_first_frames(episodes, k)
         return firsts, summaries, episodes
 

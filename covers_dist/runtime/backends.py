@@ -40,8 +40,10 @@ class SerialBackend:
         return weights
 
     # In this process every submitted call runs at once; its result waits in a (done) handle.
-    def submit_sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any) -> Any:
-        return self.sample(plan, policy_id, version, handle)
+    def submit_sample(
+        self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any, noise_beta: float | None = None
+    ) -> Any:
+        return self.sample(plan, policy_id, version, handle, noise_beta)
 
     def collect_sample(self, pending: Any) -> tuple[list, list, list]:
         return pending
@@ -54,12 +56,14 @@ class SerialBackend:
         stats, _, weights = pending
         return stats, weights
 
-    def sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any):
+    def sample(
+        self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any, noise_beta: float | None = None
+    ):
         firsts, summaries, episodes = [], [], []
         for worker, specs in zip(self.workers, plan):
             if not specs:
                 continue
-            eps = worker.sample(specs, policy_id, version, handle)
+            eps = worker.sample(specs, policy_id, version, handle, noise_beta=noise_beta)
             f, s = split_first_frames(eps, self.cfg.clustering.initial_frames)
             firsts += f
             summaries += s
@@ -155,10 +159,12 @@ class RayBackend:
     def publish(self, weights: Any) -> Any:
         return [self.ray.put(weights)]  # wrapped in a list: workers resolve it only when needed
 
-    def submit_sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any) -> Any:
+    def submit_sample(
+        self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any, noise_beta: float | None = None
+    ) -> Any:
         k = self.cfg.clustering.initial_frames
         return [
-            w.sample_split.options(num_returns=3).remote(specs, policy_id, version, handle, k)
+            w.sample_split.options(num_returns=3).remote(specs, policy_id, version, handle, k, noise_beta)
             for w, specs in zip(self.workers, plan)
             if specs
         ]
@@ -172,8 +178,10 @@ class RayBackend:
         stats_ref, _, weights_ref = pending
         return self.ray.get(stats_ref), [weights_ref]
 
-    def sample(self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any):
-        return self.collect_sample(self.submit_sample(plan, policy_id, version, handle))
+    def sample(
+        self, plan: list[list[EpisodeSpec]], policy_id: int, version: int, handle: Any, noise_beta: float | None = None
+    ):
+        return self.collect_sample(self.submit_sample(plan, policy_id, version, handle, noise_beta))
 
     def collect_sample(self, calls: Any) -> tuple[list, list, list]:
         firsts, summaries, episode_refs = [], [], []

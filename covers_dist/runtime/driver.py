@@ -35,6 +35,7 @@ import yaml
 
 from ..config import Config, config_to_dict, load_run_config
 from ..envs.stream import TaskStream
+from ..ppo.noise import faded_beta
 from .checkpoint import latest_valid_checkpoint
 from .clustering_service import SINGLE_POLICY_METHODS
 from .evaluation import PeriodicEvaluation
@@ -68,6 +69,7 @@ class Trainer:
         self.env_steps = 0
         self.current_policy = 0
         self.tally = EpisodeTally(list(cfg.env.tasks))
+        self.noise_beta = cfg.ppo.noise_beta  # the colour the latest batch was sampled with
         self.phase_time: dict[str, float] = {}
         self.clock_start, self.clock_steps = time.monotonic(), 0  # for env steps per second
         self.on_iteration: list[Callable[[], None]] = []  # called after every iteration (e.g. service checks)
@@ -144,11 +146,18 @@ class Trainer:
         """Run the plan with ``policy_id``'s published weights: the episodes' first frames and their
         summaries (both in episode order) and the episodes for the learner."""
         version, handle = self.weights.versions[policy_id], self.weights.handles[policy_id]
+        self.noise_beta = self.policy_noise_beta(policy_id)
         firsts, summaries, episodes = self.backend.collect_sample(
-            self.backend.submit_sample(plan, policy_id, version, handle)
+            self.backend.submit_sample(plan, policy_id, version, handle, self.noise_beta)
         )
         order = sorted(range(len(summaries)), key=lambda i: summaries[i]["episode_index"])
         return [firsts[i] for i in order], [summaries[i] for i in order], episodes
+
+    def policy_noise_beta(self, policy_id: int) -> float:
+        """The colour of ``policy_id``'s training noise: ``ppo.noise_beta``, faded by its own recent
+        success when ``ppo.noise_fade_success`` is set (:func:`~covers_dist.ppo.noise.faded_beta`)."""
+        ppo = self.cfg.ppo
+        return faded_beta(ppo.noise_beta, ppo.noise_fade_success, self.tally.policy_success.get(policy_id, []))
 
     def _assign(self, obs: dict[str, np.ndarray], episodes: list[Any]) -> dict[str, Any]:
         """The clustering service's assignment of a batch (episode specs or summaries, in order);

@@ -52,6 +52,8 @@ class M:
     RETURN = "return"  # return/<task>
     TIME = "time"  # time/<phase>
     LOSS = "ppo"  # ppo/<stat>
+    #: the colour of the batch's training noise (rows of runs with ppo.noise_beta > 0)
+    NOISE_BETA = "noise_beta"
 
 
 class MetricsWriter:

@@ -156,12 +156,18 @@ class RolloutWorker:
         weights: Any = None,
         deterministic: bool = False,
         seeds: list[int] | None = None,
+        noise_beta: float | None = None,
     ) -> list[dict[str, Any]]:
         """Run one full episode per spec with the given policy; returns Episode dicts.
 
         ``seeds`` (one per spec) replaces the training seeds derived from the episode indices
         (evaluation uses its own seeds, see :mod:`covers_dist.evaluation.protocol`).
+        ``noise_beta`` is the colour of the action noise (None: ``ppo.noise_beta``; the driver
+        passes the policy's faded colour, ``ppo.noise_fade_success``).
         """
+        if noise_beta is not None and not 0.0 <= noise_beta <= 2.0:
+            raise ValueError(f"noise_beta must be in [0, 2], got {noise_beta!r}")
+        beta = self.cfg.ppo.noise_beta if noise_beta is None else float(noise_beta)
         if seeds is not None and len(seeds) != len(specs):
             raise ValueError(f"need one seed per episode spec, got {len(seeds)} seeds for {len(specs)} specs")
         self._ensure_weights(policy_id, version, weights)
@@ -169,7 +175,9 @@ class RolloutWorker:
         width = self.cfg.runtime.envs_per_worker
         for start in range(0, len(specs), width):
             chunk = None if seeds is None else [int(s) for s in seeds[start : start + width]]
-            episodes.extend(self._run_group(specs[start : start + width], policy_id, version, deterministic, chunk))
+            episodes.extend(
+                self._run_group(specs[start : start + width], policy_id, version, deterministic, chunk, beta)
+            )
         return episodes
 
     def first_observations(self, specs: list[EpisodeSpec], seeds: list[int]) -> dict[str, np.ndarray]:
@@ -186,6 +194,7 @@ class RolloutWorker:
         version: int,
         deterministic: bool,
         seeds: list[int] | None = None,
+        noise_beta: float = 0.0,
     ) -> list[dict[str, Any]]:
         envs = [self._env(s.task, s.g, slot) for slot, s in enumerate(specs)]
         if seeds is None:
@@ -197,7 +206,7 @@ class RolloutWorker:
             seeds,
             gen,
             deterministic,
-            noise_beta=self.cfg.ppo.noise_beta,
+            noise_beta=noise_beta,
             noise_steps=self.cfg.env.max_episode_steps,
         )
         for ep, spec in zip(episodes, specs):

@@ -2,7 +2,8 @@
 
 :class:`EpisodeTally` keeps, per task group, when the group first appeared and the env steps
 spent on it (evaluation metrics need both), the latest batch's training success and return, and
-how many episodes were acted by a policy other than the one they were then assigned to.
+how many episodes were acted by a policy other than the one they were then assigned to, and each
+policy's latest training successes (what fades its exploration noise, ``ppo.noise_fade_success``).
 :func:`iteration_row` turns an iteration into the row written to metrics.jsonl (names in
 :class:`~covers_dist.runtime.metrics.M`).
 """
@@ -14,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..ppo.noise import FADE_WINDOW
 from .metrics import M
 
 __all__ = ["EpisodeTally", "iteration_row", "loss_fields"]
@@ -28,6 +30,7 @@ class EpisodeTally:
         self.returns: dict[str, float] = {}
         self.acted_other = 0  # episodes acted by a policy other than the one they were assigned to
         self.last: list[dict[str, Any]] = []  # the last batch's episode summaries
+        self.policy_success: dict[int, list[float]] = {}  # per acting policy, its last FADE_WINDOW successes
 
     def record(self, summaries: list[dict[str, Any]], assigned: int) -> None:
         """Count a batch of episode summaries, all assigned to policy ``assigned``."""
@@ -42,6 +45,9 @@ class EpisodeTally:
             info["env_steps"] += int(s["length"])
             batch_success.setdefault(s["task"], []).append(s["success"])
             batch_return.setdefault(s["task"], []).append(s["return"])
+            recent = self.policy_success.setdefault(int(s["policy_id"]), [])
+            recent.append(float(s["success"]))
+            del recent[:-FADE_WINDOW]
         for task in batch_success:
             self.success[task] = float(np.mean(batch_success[task]))
             self.returns[task] = float(np.mean(batch_return[task]))
@@ -91,6 +97,8 @@ def iteration_row(
     for task in tally.success:
         row[f"{M.SUCCESS}/{task}"] = tally.success[task]
         row[f"{M.RETURN}/{task}"] = tally.returns[task]
+    if trainer.cfg.ppo.noise_beta > 0.0:
+        row[M.NOISE_BETA] = trainer.noise_beta
     for name, secs in trainer.phase_time.items():
         row[f"{M.TIME}/{name}"] = secs
     row.update(loss_fields(stats))

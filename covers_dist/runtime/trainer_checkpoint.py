@@ -40,6 +40,7 @@ def _driver_state(trainer: Any) -> dict[str, Any]:
         "policies": sorted(trainer.weights.versions),
         "groups": trainer.tally.groups,
         "acted_other": trainer.tally.acted_other,
+        "policy_success": {str(pid): v for pid, v in trainer.tally.policy_success.items()},
         "stream": trainer.stream.state_dict(),
         "numpy_rng": np.random.get_state()[1].tolist(),
         "network_probe": trainer.backend.network_probe().tolist(),
@@ -84,6 +85,7 @@ def restore_trainer(trainer: Any, path: Path) -> None:
     weights.version = state["weight_version"]
     trainer.tally.groups.update(state.get("groups", {}))
     trainer.tally.acted_other = int(state.get("acted_other", 0))
+    trainer.tally.policy_success = {int(pid): list(v) for pid, v in state.get("policy_success", {}).items()}
     trainer.stream.load_state_dict(state["stream"])
     warning = probe_mismatch(state.get("network_probe"), backend.network_probe(), trainer.cfg)
     if warning:
