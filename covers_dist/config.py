@@ -224,6 +224,14 @@ class PPOConfig:
         min=0.0,
         max=2.0,
     )
+    noise_fraction: float = _f(
+        1.0,
+        "The fraction of training episodes sampled with the coloured noise (ppo.noise_beta, faded by "
+        "ppo.noise_fade_success); the others get white noise. Spread evenly over the episode indices (0.5: "
+        "every second episode), so a batch mixes both.",
+        min=0.0,
+        max=1.0,
+    )
     noise_fade_success: float | None = _f(
         None,
         "A policy's noise turns white as it succeeds: its colour is noise_beta * max(0, 1 - s / this), s its "

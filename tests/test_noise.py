@@ -13,7 +13,7 @@ import torch
 from covers_dist.config import ConfigError, NetworkConfig
 from covers_dist.envs.toy import ToyTask, toy_layout
 from covers_dist.models import build_actor_critic, gaussian_log_prob
-from covers_dist.ppo.noise import FADE_WINDOW, NoiseSequences, coloured_noise, faded_beta
+from covers_dist.ppo.noise import FADE_WINDOW, NoiseSequences, coloured_episode, coloured_noise, faded_beta
 from covers_dist.ppo.rollout import run_lockstep
 from covers_dist.runtime.driver import Trainer
 from covers_dist.runtime.rollout import EpisodeSpec, RolloutWorker
@@ -84,11 +84,12 @@ def _model_and_envs(n: int = 3, steps: int = 12):
     return model, envs
 
 
-def test_lockstep_actions_are_the_mean_plus_std_times_the_drawn_sequences():
+@pytest.mark.parametrize("betas", [1.0, [1.0, 0.0, 2.0]])  # one colour, or one per env (ppo.noise_fraction)
+def test_lockstep_actions_are_the_mean_plus_std_times_the_drawn_sequences(betas):
     model, envs = _model_and_envs()
     seeds = [10, 11, 12]
-    eps = run_lockstep(model, envs, seeds, torch.Generator().manual_seed(5), noise_beta=1.0, noise_steps=12)
-    expected = NoiseSequences(1.0, 12, envs[0].action_space.shape[0], 3, torch.Generator().manual_seed(5))
+    eps = run_lockstep(model, envs, seeds, torch.Generator().manual_seed(5), noise_beta=betas, noise_steps=12)
+    expected = NoiseSequences(betas, 12, envs[0].action_space.shape[0], 3, torch.Generator().manual_seed(5))
     std = model.log_std().exp().detach()
     for i, ep in enumerate(eps):
         obs = {"image": ep["image"][:-1], "proprio": ep["proprio"][:-1]}
@@ -98,11 +99,13 @@ def test_lockstep_actions_are_the_mean_plus_std_times_the_drawn_sequences():
         # the log-probabilities are the Gaussian's of the actions taken, as with white noise
         logp = gaussian_log_prob(torch.from_numpy(ep["action"]), means, model.log_std().detach().expand_as(means))
         torch.testing.assert_close(torch.from_numpy(ep["logprob"]), logp, rtol=1e-4, atol=1e-4)
-    again = run_lockstep(model, envs, seeds, torch.Generator().manual_seed(5), noise_beta=1.0, noise_steps=12)
+    again = run_lockstep(model, envs, seeds, torch.Generator().manual_seed(5), noise_beta=betas, noise_steps=12)
     white = run_lockstep(model, envs, seeds, torch.Generator().manual_seed(5))
     for a, b, w in zip(eps, again, white):
         np.testing.assert_array_equal(a["action"], b["action"])
         assert not np.array_equal(a["action"], w["action"])
+    with pytest.raises(ValueError, match="one noise_beta per env"):
+        run_lockstep(model, envs, seeds, None, noise_beta=[1.0, 0.0])
     greedy = run_lockstep(model, envs, seeds, None, deterministic=True, noise_beta=1.0, noise_steps=12)
     plain = run_lockstep(model, envs, seeds, None, deterministic=True)
     for g, p in zip(greedy, plain):  # greedy acting ignores the noise
@@ -222,6 +225,29 @@ def test_a_worker_samples_with_the_colour_it_is_given(tmp_path):
         worker.close()
     np.testing.assert_array_equal(got["pink"], got["given"])  # the given colour, not the config's
     assert not np.array_equal(got["pink"], got["white"])
+
+
+def test_a_fraction_of_the_episodes_gets_the_colour(tmp_path):
+    assert [coloured_episode(i, 0.5) for i in range(6)] == [False, True, False, True, False, True]
+    assert sum(coloured_episode(i, 0.25) for i in range(100)) == 25
+    assert all(coloured_episode(i, 1.0) for i in range(10)) and not any(coloured_episode(i, 0.0) for i in range(10))
+    with pytest.raises(ValueError, match="fraction"):
+        coloured_episode(0, 1.5)
+    specs = [EpisodeSpec(i, "reach", "e", 0) for i in range(4)]
+    got = {}
+    for name, sets in (("white", ["ppo.noise_beta=0.0"]), ("none", ["ppo.noise_beta=1.0", "ppo.noise_fraction=0.0"]),
+                       ("pink", ["ppo.noise_beta=1.0"]), ("all", ["ppo.noise_beta=1.0", "ppo.noise_fraction=1.0"]),
+                       ("half", ["ppo.noise_beta=1.0", "ppo.noise_fraction=0.5"])):  # fmt: skip
+        worker = RolloutWorker(tiny_cfg(tmp_path, *sets), 0)
+        model = build_actor_critic(worker.cfg.network, worker.layout, seed=0)
+        got[name] = [e["action"] for e in worker.sample(specs, 0, 1, model.get_weights())]
+        worker.close()
+    for a, b in ((got["white"], got["none"]), (got["pink"], got["all"])):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+    assert not any(np.array_equal(x, y) for x, y in zip(got["half"], got["pink"]))
+    with pytest.raises(ConfigError, match="ppo.noise_fraction"):
+        tiny_cfg(tmp_path, "ppo.noise_fraction=1.5")
 
 
 def test_bench_explore_runs_white_first_and_coloured_noise_lifts_the_hand(capsys):

@@ -368,6 +368,7 @@ class _CoversContender:
             **({} if cfg.ppo.kl_reference == "behaviour" else {"kl_reference": cfg.ppo.kl_reference}),
             **({} if cfg.ppo.noise_beta == 0.0 else {"noise_beta": float(cfg.ppo.noise_beta)}),
             **({} if cfg.ppo.noise_fade_success is None else {"noise_fade_success": float(cfg.ppo.noise_fade_success)}),
+            **({} if cfg.ppo.noise_fraction == 1.0 else {"noise_fraction": float(cfg.ppo.noise_fraction)}),
         }
 
     def close(self) -> None:

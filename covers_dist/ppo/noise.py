@@ -18,9 +18,11 @@ Plain module: torch only, no runtime imports.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 
-__all__ = ["FADE_WINDOW", "coloured_noise", "faded_beta", "NoiseSequences"]
+__all__ = ["FADE_WINDOW", "coloured_noise", "coloured_episode", "faded_beta", "NoiseSequences"]
 
 #: Training episodes of a policy whose success fades its colour (``ppo.noise_fade_success``).
 FADE_WINDOW = 64
@@ -59,6 +61,15 @@ def coloured_noise(beta: float, steps: int, dims: int, generator: torch.Generato
     return x.to(torch.float32)
 
 
+def coloured_episode(episode_index: int, fraction: float) -> bool:
+    """Whether training episode ``episode_index`` gets the coloured noise when only ``fraction`` of
+    the episodes do (``ppo.noise_fraction``): spread evenly over the indices (0.5: every second
+    episode, the odd ones), a pure function of the index so a retried batch samples the same."""
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f"fraction must be in [0, 1], got {fraction!r}")
+    return int((episode_index + 1) * fraction) > int(episode_index * fraction)
+
+
 def faded_beta(beta: float, fade_success: float | None, successes: list[float]) -> float:
     """The colour a policy samples with: ``beta`` faded linearly to white as its success rate over
     ``successes`` (its latest training episodes, 1 or 0 each) rises to ``fade_success``.
@@ -81,13 +92,18 @@ class NoiseSequences:
     env order, so a generator fixes them all).
     """
 
-    def __init__(self, beta: float, steps: int, dims: int, envs: int, generator: torch.Generator | None) -> None:
-        self.beta, self.steps, self.dims = float(beta), int(steps), int(dims)
+    def __init__(
+        self, beta: float | Sequence[float], steps: int, dims: int, envs: int, generator: torch.Generator | None
+    ) -> None:
+        self.betas = [float(b) for b in beta] if isinstance(beta, Sequence) else [float(beta)] * envs
+        if len(self.betas) != envs:
+            raise ValueError(f"need one beta per env, got {len(self.betas)} for {envs} envs")
+        self.steps, self.dims = int(steps), int(dims)
         self.generator = generator
-        self._seqs = [coloured_noise(self.beta, self.steps, self.dims, generator) for _ in range(envs)]
+        self._seqs = [coloured_noise(b, self.steps, self.dims, generator) for b in self.betas]
 
     def take(self, i: int, t: int) -> torch.Tensor:
         while t >= len(self._seqs[i]):
-            more = coloured_noise(self.beta, self.steps, self.dims, self.generator)
+            more = coloured_noise(self.betas[i], self.steps, self.dims, self.generator)
             self._seqs[i] = torch.cat([self._seqs[i], more])
         return self._seqs[i][t]

@@ -52,7 +52,7 @@ def run_lockstep(
     seeds: Sequence[int],
     generator: torch.Generator | None = None,
     deterministic: bool = False,
-    noise_beta: float = 0.0,
+    noise_beta: float | Sequence[float] = 0.0,
     noise_steps: int = 100,
 ) -> list[dict[str, Any]]:
     """One full episode per env, stepped together (one batched ``model.act`` per step).
@@ -60,14 +60,18 @@ def run_lockstep(
     Env ``i`` is reset with ``seeds[i]``. Returns Episode dicts (with ``task`` and ``g`` read from
     the envs); the rollout workers of the runtime add their own metadata. ``noise_beta > 0``
     samples with coloured noise (:mod:`covers_dist.ppo.noise`): one sequence of ``noise_steps``
-    steps per env, drawn from ``generator`` at the start (0: white noise drawn per step by the model).
+    steps per env, drawn from ``generator`` at the start (0: white noise drawn per step by the model);
+    a sequence gives each env its own colour.
     """
     n = len(envs)
     if len(seeds) != n:
         raise ValueError(f"need one seed per env, got {len(seeds)} seeds for {n} envs")
     coloured = None
-    if noise_beta > 0.0 and not deterministic:
-        coloured = NoiseSequences(noise_beta, noise_steps, envs[0].action_space.shape[0], n, generator)
+    betas = list(noise_beta) if isinstance(noise_beta, Sequence) else [noise_beta] * n
+    if len(betas) != n:
+        raise ValueError(f"need one noise_beta per env, got {len(betas)} for {n} envs")
+    if any(b > 0.0 for b in betas) and not deterministic:
+        coloured = NoiseSequences(betas, noise_steps, envs[0].action_space.shape[0], n, generator)
     obs = [env.reset(seed=int(s))[0] for env, s in zip(envs, seeds)]
     logs: list[dict[str, list]] = [
         {"image": [o["image"]], "proprio": [o["proprio"]], "action": [], "logprob": [], "value": [], "reward": [],

@@ -20,6 +20,7 @@ from ..envs import make_task, suite_layout
 from ..evaluation.episodes import run_eval_episodes
 from ..evaluation.protocol import EvalJob, EvalPair
 from ..models import build_actor_critic
+from ..ppo.noise import coloured_episode
 from ..ppo.rollout import run_lockstep
 from ..symmetry import GroupElement
 from .ray_setup import resolve_weights
@@ -206,7 +207,7 @@ class RolloutWorker:
             seeds,
             gen,
             deterministic,
-            noise_beta=noise_beta,
+            noise_beta=[noise_beta * coloured_episode(s.episode_index, self.cfg.ppo.noise_fraction) for s in specs],
             noise_steps=self.cfg.env.max_episode_steps,
         )
         for ep, spec in zip(episodes, specs):
