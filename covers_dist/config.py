@@ -232,6 +232,12 @@ class PPOConfig:
         min=0.0,
         max=1.0,
     )
+    noise_entries: Literal["all", "planar", "scalar"] = _f(
+        "all",
+        "Which action entries get the colour (ppo.noise_beta); the others keep white noise. all: every entry; "
+        "planar: the table-plane pairs (x, y: the entries the group rotates and mirrors); scalar: the others "
+        "(height, gripper). Chosen per kind, never per entry, so the noise stays invariant under the group.",
+    )
     noise_fade_success: float | None = _f(
         None,
         "A policy's noise turns white as it succeeds: its colour is noise_beta * max(0, 1 - s / this), s its "

@@ -1,6 +1,7 @@
 """Coloured action noise (ppo.noise_beta): every step stays N(0, 1), the spectrum falls as
 1/f^beta, the rollout workers use exactly the drawn sequences, and a policy's colour fades to
-white as its own training episodes succeed (ppo.noise_fade_success)."""
+white as its own training episodes succeed (ppo.noise_fade_success), and only the entries
+ppo.noise_entries names get the colour."""
 
 from __future__ import annotations
 
@@ -13,7 +14,14 @@ import torch
 from covers_dist.config import ConfigError, NetworkConfig
 from covers_dist.envs.toy import ToyTask, toy_layout
 from covers_dist.models import build_actor_critic, gaussian_log_prob
-from covers_dist.ppo.noise import FADE_WINDOW, NoiseSequences, coloured_episode, coloured_noise, faded_beta
+from covers_dist.ppo.noise import (
+    FADE_WINDOW,
+    NoiseSequences,
+    coloured_entries,
+    coloured_episode,
+    coloured_noise,
+    faded_beta,
+)
 from covers_dist.ppo.rollout import run_lockstep
 from covers_dist.runtime.driver import Trainer
 from covers_dist.runtime.rollout import EpisodeSpec, RolloutWorker
@@ -271,3 +279,49 @@ def test_bench_explore_runs_white_first_and_coloured_noise_lifts_the_hand(capsys
     ):
         with pytest.raises(SystemExit, match=words):
             main(["bench", "explore", *bad])
+
+
+def test_coloured_entries_choose_per_kind_of_entry():
+    assert coloured_entries("all", 4, 1) is None
+    assert coloured_entries("planar", 4, 1) == [True, True, False, False]  # x, y: the group moves them
+    assert coloured_entries("scalar", 4, 1) == [False, False, True, True]  # height, gripper
+    assert coloured_entries("scalar", 2, 1) == [False, False]  # a layout with no scalar entries: all white
+    with pytest.raises(ValueError, match="must be one of all, planar, scalar"):
+        coloured_entries("z", 4, 1)
+    with pytest.raises(ValueError, match="action_pairs"):
+        coloured_entries("planar", 2, 2)
+
+
+def test_only_the_flagged_entries_are_coloured():
+    flags = [False, False, True, True]
+    gen = torch.Generator().manual_seed(4)
+    x = torch.stack([coloured_noise(1.0, 64, 4, gen, flags) for _ in range(2000)]).numpy().astype(np.float64)
+    lag1 = np.mean(x[:, 1:] * x[:, :-1], axis=(0, 1))  # per entry
+    assert np.all(np.abs(lag1[:2]) < 0.05) and np.all((lag1[2:] > 0.5) & (lag1[2:] < 0.9))
+    var = x.var(axis=0)  # every step of every entry still N(0, 1)
+    assert 0.88 < var.min() and var.max() < 1.12
+    # the flagged entries are the draws of an all-coloured sequence; all flags set changes nothing
+    a = coloured_noise(1.0, 30, 4, torch.Generator().manual_seed(9), flags)
+    b = coloured_noise(1.0, 30, 4, torch.Generator().manual_seed(9))
+    assert torch.equal(a[:, 2:], b[:, 2:]) and not torch.equal(a[:, :2], b[:, :2])
+    assert torch.equal(coloured_noise(1.0, 30, 4, torch.Generator().manual_seed(9), [True] * 4), b)
+    with pytest.raises(ValueError, match="one coloured flag per dim"):
+        coloured_noise(1.0, 30, 4, None, [True, False])
+    seqs = NoiseSequences(1.0, 8, 4, envs=2, generator=torch.Generator().manual_seed(2), coloured=flags)
+    late = seqs.take(0, 11)  # a second block keeps the flags
+    assert late.shape == (4,) and len(seqs._seqs[0]) == 16
+
+
+def test_rollout_workers_colour_the_configured_entries(tmp_path):
+    specs = [EpisodeSpec(i, "reach", "e", 0) for i in range(4)]
+    got = {}
+    for entries in ("all", "planar", "scalar"):
+        worker = RolloutWorker(tiny_cfg(tmp_path, "ppo.noise_beta=1.0", f"ppo.noise_entries={entries}"), 0)
+        model = build_actor_critic(worker.cfg.network, worker.layout, seed=0)
+        got[entries] = np.concatenate([e["action"] for e in worker.sample(specs, 0, 1, model.get_weights())])
+        worker.close()
+    # the toy's two action entries are one table-plane pair: planar colours both, as all does
+    np.testing.assert_array_equal(got["planar"], got["all"])
+    assert not np.array_equal(got["scalar"], got["all"])
+    with pytest.raises(ConfigError, match="ppo.noise_entries"):
+        tiny_cfg(tmp_path, "ppo.noise_entries=z")

@@ -28,9 +28,9 @@ import torch
 
 from ..commands._common import CommaList
 from ..config import ConfigError, load_config
-from ..envs import make_task, task_names
+from ..envs import make_task, suite_layout, task_names
 from ..evaluation.stats import wilson_interval
-from ..ppo.noise import coloured_noise
+from ..ppo.noise import NOISE_ENTRIES, coloured_entries, coloured_noise
 from ..symmetry import get_group
 
 
@@ -43,6 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="noise colours, 0 = white (the baseline), 1 = pink, 2 = red (default: 0,1,2)")  # fmt: skip
     p.add_argument("--stds", action=CommaList, default=["1.0", "0.5"], metavar="S[,S...]",
                    help="noise standard deviations (default: 1.0,0.5)")  # fmt: skip
+    p.add_argument("--entries", choices=NOISE_ENTRIES, default="all",
+                   help="the action entries that get the colour, the others white (ppo.noise_entries; default: all)")  # fmt: skip
     p.add_argument("--episodes", type=int, default=64, help="episodes per setting, over the transforms (default: 64)")
     p.add_argument("--steps", type=int, default=150, help="episode length in env steps (default: 150)")
     p.add_argument("--gain", type=float, default=10.0, help="controller gain per metre (default: 10)")
@@ -66,14 +68,15 @@ def _floats(values: list[str], name: str, low: float, high: float) -> list[float
 
 
 def run_setting(envs: list[Any], seeds: list[int], beta: float, std: float, steps: int, gain: float,
-                seed: int) -> dict[str, Any]:  # fmt: skip
+                seed: int, coloured: list[bool] | None = None) -> dict[str, Any]:  # fmt: skip
     """One setting's episodes (``envs[i]`` reset with ``seeds[i]``); successes, first-success steps
-    and how far the hand rose above its start."""
+    and how far the hand rose above its start. ``coloured``: the entries that get the colour
+    (:func:`covers_dist.ppo.noise.coloured_entries`; None: all)."""
     gen = torch.Generator().manual_seed(seed)
     successes, first, rise = 0, [], []
     for env, reset_seed in zip(envs, seeds):
         env.reset(seed=reset_seed)
-        noise = coloured_noise(beta, steps, env.action_space.shape[0], gen).numpy()
+        noise = coloured_noise(beta, steps, env.action_space.shape[0], gen, coloured).numpy()
         z0 = env.task_state()["hand"][2]
         top, hit = z0, None
         for t in range(steps):
@@ -118,6 +121,8 @@ def run(args: argparse.Namespace) -> int:
         elements = [g.name for g in get_group(cfg.env.group)]
     except (ConfigError, ValueError, KeyError) as exc:
         raise SystemExit(f"{prog}: {exc}") from None
+    layout = suite_layout(cfg.env.suite, cfg.env.image_size)
+    coloured = coloured_entries(args.entries, layout.action_dim, layout.action_pairs)
     env_cfg = dataclasses.replace(cfg.env, success_bonus=0.0)
     envs: dict[str, Any] = {g: make_task(env_cfg, args.task, g) for g in elements}
     order = [elements[i % len(elements)] for i in range(args.episodes)]
@@ -128,8 +133,9 @@ def run(args: argparse.Namespace) -> int:
     for std in stds:
         white = None
         for beta in sorted(betas):
-            row = run_setting([envs[g] for g in order], seeds, beta, std, args.steps, args.gain, args.seed)
+            row = run_setting([envs[g] for g in order], seeds, beta, std, args.steps, args.gain, args.seed, coloured)
             row["task"] = args.task
+            row["entries"] = args.entries
             if beta == 0.0:
                 white = row["success_rate"]
             row["vs_white"] = None if not white else round(row["success_rate"] / white, 2)
@@ -144,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
                 first = row["first_success_step_median"]
                 ratio = "n/a (white found none)" if row["vs_white"] is None else f"{row['vs_white']:.2f}x white"
                 print(
-                    f"{args.task} std {std:.2f} beta {beta:.1f}: {row['successes']}/{row['episodes']} succeed "
+                    f"{args.task} std {std:.2f} beta {beta:.1f} ({args.entries}): {row['successes']}/{row['episodes']} succeed "
                     f"({row['success_rate']:.3f}, 95% CI {row['ci95'][0]:.3f}-{row['ci95'][1]:.3f}; {ratio}), "
                     f"first success at step {first if first is not None else '-'} (median), "
                     f"hand rises {row['hand_rise_m_median']:.3f} m (median)",

@@ -369,6 +369,7 @@ class _CoversContender:
             **({} if cfg.ppo.noise_beta == 0.0 else {"noise_beta": float(cfg.ppo.noise_beta)}),
             **({} if cfg.ppo.noise_fade_success is None else {"noise_fade_success": float(cfg.ppo.noise_fade_success)}),
             **({} if cfg.ppo.noise_fraction == 1.0 else {"noise_fraction": float(cfg.ppo.noise_fraction)}),
+            **({} if cfg.ppo.noise_entries == "all" else {"noise_entries": cfg.ppo.noise_entries}),
         }
 
     def close(self) -> None:

@@ -22,19 +22,60 @@ from collections.abc import Sequence
 
 import torch
 
-__all__ = ["FADE_WINDOW", "coloured_noise", "coloured_episode", "faded_beta", "NoiseSequences"]
+__all__ = ["FADE_WINDOW", "NOISE_ENTRIES", "coloured_noise", "coloured_entries", "coloured_episode", "faded_beta", "NoiseSequences"]
 
 #: Training episodes of a policy whose success fades its colour (``ppo.noise_fade_success``).
 FADE_WINDOW = 64
 
+#: Which action entries get the colour (``ppo.noise_entries``); the others keep white noise.
+NOISE_ENTRIES = ("all", "planar", "scalar")
 
-def coloured_noise(beta: float, steps: int, dims: int, generator: torch.Generator | None = None) -> torch.Tensor:
+
+def coloured_entries(entries: str, action_dim: int, action_pairs: int) -> list[bool] | None:
+    """Per action entry, whether it gets the colour under ``ppo.noise_entries`` (None: every entry).
+
+    The group acts on the first ``2 * action_pairs`` entries (table-plane pairs: rotated and
+    mirrored) and leaves the rest (height, gripper) alone. A noise law is invariant under the group
+    when each pair's two entries share one law, so the choice is made per kind, never per entry:
+    ``planar`` colours the pairs only, ``scalar`` the others only.
+    """
+    if entries not in NOISE_ENTRIES:
+        raise ValueError(f"noise entries must be one of {', '.join(NOISE_ENTRIES)}, got {entries!r}")
+    if not 0 <= 2 * action_pairs <= action_dim:
+        raise ValueError(f"need 0 <= 2 * action_pairs <= action_dim, got {action_pairs} pairs for {action_dim} entries")
+    if entries == "all":
+        return None
+    planar = [i < 2 * action_pairs for i in range(action_dim)]
+    return planar if entries == "planar" else [not p for p in planar]
+
+
+def coloured_noise(
+    beta: float,
+    steps: int,
+    dims: int,
+    generator: torch.Generator | None = None,
+    coloured: Sequence[bool] | None = None,
+) -> torch.Tensor:
     """A ``(steps, dims)`` float32 tensor: ``dims`` independent sequences of ``steps`` standard
     normal samples whose power spectrum falls as ``1 / f**beta``.
 
     Every entry is exactly ``N(0, 1)`` (a linear map of independent normals, scaled by its exact
-    standard deviation); ``beta = 0`` draws plain independent normals.
+    standard deviation); ``beta = 0`` draws plain independent normals. ``coloured`` (one flag per
+    dim, :func:`coloured_entries`) keeps the flagged dims coloured and gives the others white noise,
+    drawn after the coloured sequences (None or all flags set: the draws are those of every dim
+    coloured).
     """
+    if coloured is not None and len(coloured) != dims:
+        raise ValueError(f"need one coloured flag per dim, got {len(coloured)} for {dims} dims")
+    x = _coloured(beta, steps, dims, generator)
+    if coloured is not None and not all(coloured) and beta != 0.0:
+        white = torch.randn(steps, dims, generator=generator)
+        keep = torch.tensor([bool(c) for c in coloured])
+        x = torch.where(keep, x, white)
+    return x
+
+
+def _coloured(beta: float, steps: int, dims: int, generator: torch.Generator | None) -> torch.Tensor:
     if not beta >= 0.0:
         raise ValueError(f"beta must be >= 0, got {beta!r}")
     if steps < 1 or dims < 1:
@@ -93,17 +134,24 @@ class NoiseSequences:
     """
 
     def __init__(
-        self, beta: float | Sequence[float], steps: int, dims: int, envs: int, generator: torch.Generator | None
+        self,
+        beta: float | Sequence[float],
+        steps: int,
+        dims: int,
+        envs: int,
+        generator: torch.Generator | None,
+        coloured: Sequence[bool] | None = None,
     ) -> None:
         self.betas = [float(b) for b in beta] if isinstance(beta, Sequence) else [float(beta)] * envs
         if len(self.betas) != envs:
             raise ValueError(f"need one beta per env, got {len(self.betas)} for {envs} envs")
         self.steps, self.dims = int(steps), int(dims)
         self.generator = generator
-        self._seqs = [coloured_noise(b, self.steps, self.dims, generator) for b in self.betas]
+        self.coloured = None if coloured is None else [bool(c) for c in coloured]
+        self._seqs = [coloured_noise(b, self.steps, self.dims, generator, self.coloured) for b in self.betas]
 
     def take(self, i: int, t: int) -> torch.Tensor:
         while t >= len(self._seqs[i]):
-            more = coloured_noise(self.betas[i], self.steps, self.dims, self.generator)
+            more = coloured_noise(self.betas[i], self.steps, self.dims, self.generator, self.coloured)
             self._seqs[i] = torch.cat([self._seqs[i], more])
         return self._seqs[i][t]

@@ -54,6 +54,7 @@ def run_lockstep(
     deterministic: bool = False,
     noise_beta: float | Sequence[float] = 0.0,
     noise_steps: int = 100,
+    noise_coloured: Sequence[bool] | None = None,
 ) -> list[dict[str, Any]]:
     """One full episode per env, stepped together (one batched ``model.act`` per step).
 
@@ -61,7 +62,8 @@ def run_lockstep(
     the envs); the rollout workers of the runtime add their own metadata. ``noise_beta > 0``
     samples with coloured noise (:mod:`covers_dist.ppo.noise`): one sequence of ``noise_steps``
     steps per env, drawn from ``generator`` at the start (0: white noise drawn per step by the model);
-    a sequence gives each env its own colour.
+    a sequence gives each env its own colour; ``noise_coloured`` (one flag per action entry,
+    :func:`covers_dist.ppo.noise.coloured_entries`) keeps the unflagged entries white.
     """
     n = len(envs)
     if len(seeds) != n:
@@ -71,7 +73,7 @@ def run_lockstep(
     if len(betas) != n:
         raise ValueError(f"need one noise_beta per env, got {len(betas)} for {n} envs")
     if any(b > 0.0 for b in betas) and not deterministic:
-        coloured = NoiseSequences(betas, noise_steps, envs[0].action_space.shape[0], n, generator)
+        coloured = NoiseSequences(betas, noise_steps, envs[0].action_space.shape[0], n, generator, noise_coloured)
     obs = [env.reset(seed=int(s))[0] for env, s in zip(envs, seeds)]
     logs: list[dict[str, list]] = [
         {"image": [o["image"]], "proprio": [o["proprio"]], "action": [], "logprob": [], "value": [], "reward": [],

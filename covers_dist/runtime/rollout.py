@@ -20,7 +20,7 @@ from ..envs import make_task, suite_layout
 from ..evaluation.episodes import run_eval_episodes
 from ..evaluation.protocol import EvalJob, EvalPair
 from ..models import build_actor_critic
-from ..ppo.noise import coloured_episode
+from ..ppo.noise import coloured_entries, coloured_episode
 from ..ppo.rollout import run_lockstep
 from ..symmetry import GroupElement
 from .ray_setup import resolve_weights
@@ -103,6 +103,7 @@ class RolloutWorker:
         self.worker_index = worker_index
         self.layout = suite_layout(cfg.env.suite, cfg.env.image_size)
         self.model = build_actor_critic(cfg.network, self.layout)
+        self.noise_coloured = coloured_entries(cfg.ppo.noise_entries, self.layout.action_dim, self.layout.action_pairs)
         self.model.eval()
         self._loaded: tuple[int, int] | None = None  # (policy id, version) of the loaded weights
         self._envs: OrderedDict[tuple[str, int], Any] = OrderedDict()
@@ -209,6 +210,7 @@ class RolloutWorker:
             deterministic,
             noise_beta=[noise_beta * coloured_episode(s.episode_index, self.cfg.ppo.noise_fraction) for s in specs],
             noise_steps=self.cfg.env.max_episode_steps,
+            noise_coloured=self.noise_coloured,
         )
         for ep, spec in zip(episodes, specs):
             self.env_steps += len(ep["reward"])
