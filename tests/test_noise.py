@@ -271,11 +271,19 @@ def test_bench_explore_runs_white_first_and_coloured_noise_lifts_the_hand(capsys
         assert r["ci95"][0] <= r["success_rate"] <= r["ci95"][1]
     # white noise averages out along the episode; red noise moves the hand up and down for whole stretches
     assert rows[1]["hand_rise_m_median"] > 2 * rows[0]["hand_rise_m_median"]
+    assert all(r["entries"] == "all" for r in rows)
+    # red noise on the plane only (ppo.noise_entries=planar): the height stays white, the hand stays low
+    assert main([*argv, "--entries", "planar"]) == 0
+    planar = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    assert [r["entries"] for r in planar] == ["planar", "planar"]
+    assert planar[0] == {**rows[0], "entries": "planar"}  # white noise is white whatever the entries
+    assert planar[1]["hand_rise_m_median"] < 0.5 * rows[1]["hand_rise_m_median"]
     for bad, words in (
         (["--task", "button-press-v9"], "unknown Meta-World task"),
         (["--betas", "3"], "--betas values must lie in"),
         (["--stds", "x"], "--stds needs numbers"),
         (["--episodes", "0"], "--episodes and --steps must be >= 1"),
+        (["--entries", "z"], "2"),  # argparse's choices: usage error, exit status 2
     ):
         with pytest.raises(SystemExit, match=words):
             main(["bench", "explore", *bad])
