@@ -150,7 +150,8 @@ def run(args: argparse.Namespace) -> int:
                 first = row["first_success_step_median"]
                 ratio = "n/a (white found none)" if row["vs_white"] is None else f"{row['vs_white']:.2f}x white"
                 print(
-                    f"{args.task} std {std:.2f} beta {beta:.1f} ({args.entries}): {row['successes']}/{row['episodes']} succeed "
+                    f"{args.task} std {std:.2f} beta {beta:.1f} ({args.entries}): "
+                    f"{row['successes']}/{row['episodes']} succeed "
                     f"({row['success_rate']:.3f}, 95% CI {row['ci95'][0]:.3f}-{row['ci95'][1]:.3f}; {ratio}), "
                     f"first success at step {first if first is not None else '-'} (median), "
                     f"hand rises {row['hand_rise_m_median']:.3f} m (median)",

@@ -22,7 +22,15 @@ from collections.abc import Sequence
 
 import torch
 
-__all__ = ["FADE_WINDOW", "NOISE_ENTRIES", "coloured_noise", "coloured_entries", "coloured_episode", "faded_beta", "NoiseSequences"]
+__all__ = [
+    "FADE_WINDOW",
+    "NOISE_ENTRIES",
+    "coloured_noise",
+    "coloured_entries",
+    "coloured_episode",
+    "faded_beta",
+    "NoiseSequences",
+]
 
 #: Training episodes of a policy whose success fades its colour (``ppo.noise_fade_success``).
 FADE_WINDOW = 64
