@@ -293,6 +293,12 @@ def test_bench_explore_runs_white_first_and_coloured_noise_lifts_the_hand(capsys
 
 
 def test_coloured_entries_choose_per_kind_of_entry():
+    from typing import get_args, get_type_hints
+
+    from covers_dist.config import PPOConfig
+    from covers_dist.ppo.noise import NOISE_ENTRIES
+
+    assert get_args(get_type_hints(PPOConfig)["noise_entries"]) == NOISE_ENTRIES  # the config's choices
     assert coloured_entries("all", 4, 1) is None
     assert coloured_entries("planar", 4, 1) == [True, True, False, False]  # x, y: the group moves them
     assert coloured_entries("scalar", 4, 1) == [False, False, True, True]  # height, gripper
