@@ -374,10 +374,30 @@ def test_image_only_task_draws_transforms_from_the_reset_seed():
         ImageOnlyTask({"config": config_to_dict(cfg), "task": "reach", "transforms": []})
 
 
+def assert_equal_terms(hp: dict, cfg) -> None:
+    """A peer's hyperparameters, read back from the built algorithm, are covers-dist's for ``cfg``."""
+    from covers_dist.bench.rllib_peer import ppo_settings
+
+    want = ppo_settings(cfg)
+    for key in ("train_batch_env_steps", "minibatch_size", "epochs", "lr_schedule", "lr_horizon_updates", "value_clip"):
+        assert hp[key] == want[key], (key, hp[key], want[key])
+    for key in ("lr", "gamma", "gae_lambda", "clip", "max_grad_norm", "ent_coef", "vf_coef"):
+        assert hp[key] == pytest.approx(want[key]), (key, hp[key], want[key])
+    for key in ("scale", "normalize_return"):
+        assert hp["reward"][key] == want["reward"][key], (key, hp["reward"], want["reward"])
+    if hp["framework"] == "stable-baselines3":  # SB3's own early stop at the same approximate KL
+        assert hp["target_kl"] == pytest.approx(want["target_kl"]) and hp["kl_loss"] is False
+    else:  # RLlib has no KL stop: its KL loss stands in where covers-dist stops
+        assert hp["kl_loss"] is (want["target_kl"] is not None)
+
+
+@pytest.mark.slow
 def test_short_peer_runs_on_equal_terms(short_tmpdir):
     """RLlib on the project's CNN twin and SB3's PPO, one iteration each: the same PPO settings as
     covers-dist, read back from the built algorithms, and the same evaluation. The Ray instance
-    the RLlib peer starts leaves no temp dir behind."""
+    the RLlib peer starts leaves no temp dir behind. Slow tier (about a minute on 2 cores, most of
+    it starting the peers' processes): the default suite reads the same settings back from each
+    peer built in its own process (the SB3 temp-directory test below, tests/test_rllib_module.py)."""
     res = _learn_process("--task", "reach", "--contenders", "rllib-cnn,sb3", "--budget-steps", "400", "--eval-every", "400",
                  "--eval-episodes", "1", "--set", "runtime.num_workers=1", "--set", "env.image_size=48",
                  "--set", "ppo.lr_schedule=linear", "--set", "ppo.target_kl=0.02", "--json", timeout=400,
@@ -411,13 +431,15 @@ def test_sb3_training_leaves_nothing_in_the_temp_directory(tmp_path, monkeypatch
     logger writes nothing."""
     import tempfile
 
-    from covers_dist.bench.sb3_peer import build_sb3_ppo
+    from covers_dist.bench.sb3_peer import build_sb3_ppo, sb3_hyperparameters
 
     cfg = load_config(str(ROOT / "configs" / "smoke.yaml"),
                       ["env.tasks=[reach]", "env.image_size=48", "runtime.num_workers=1", "runtime.envs_per_worker=1",
-                       "ppo.epochs=1"])  # fmt: skip
+                       "ppo.epochs=1", "ppo.lr_schedule=linear", "ppo.target_kl=0.02"])  # fmt: skip
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     model = build_sb3_ppo(cfg, ["e", "r"])
+    # on equal terms: covers-dist's PPO settings, read back from the built model
+    assert_equal_terms(sb3_hyperparameters(model, cfg), cfg)
     for _ in range(2):
         model.learn(total_timesteps=model.n_steps * model.n_envs, reset_num_timesteps=False)
     assert model.num_timesteps > 0

@@ -157,11 +157,15 @@ def test_short_chaos_run_equals_the_clean_run():
     the network, each group has a learner to start, and what is compared does not depend on any of
     these. Two rollout workers, pipelined (the default): the run on Ray, faults and all, must equal
     the serial run, which is also the default suite's check that a Ray run of several workers
-    equals the one-process run (``tests/test_pipeline.py`` has the fault-free comparison, slow)."""
+    equals the one-process run (``tests/test_pipeline.py`` has the fault-free comparison, slow).
+    Both policies' learners share one process, as in the shipped stream and demo configs
+    (``runtime.learners_per_process``): the learner killed is that process, and the run must
+    still equal the serial run (the fault-free run with one learner process, which also counts the
+    processes: ``tests/test_pipeline.py``, slow)."""
     report, _ = _chaos("--interval", "1,2", "--seed", "1", "--max-kills", str(len(KINDS)),
                        *_sets("runtime.total_env_steps=2800", "network.channels=[2,4]", "network.hidden=8",
                               "env.image_size=16", "env.tasks=[reach,push]", "runtime.num_workers=2",
-                              "runtime.learner_ahead=false"))  # fmt: skip
+                              "runtime.learner_ahead=false", "runtime.learners_per_process=2"))  # fmt: skip
     assert report["kills"] == {k: 1 for k in KINDS}, report["kills"]
     _assert_passed(report)
 

@@ -74,7 +74,11 @@ def test_cnn_twin_does_not_recognize_transformed_copies(cnn_distances, equivaria
     assert d["transformed"].max() > d["other"].min()
 
 
+@pytest.mark.slow
 def test_toy_stream_ari_with_untrained_equivariant_encoders():
+    """Slow tier (half a minute on 2 cores: 48 batches through the bank): the default suite checks
+    what the stream's ARI rests on, the distances above (every copy of a group under the threshold,
+    other groups over it), and the bank's decisions on real frames (tests/test_smoke_run.py)."""
     # 3 groups x 8 elements in random order, 2 batches of update_every episodes; each policy its own encoder
     row = run_toy_stream("wasserstein", "equivariant", D_EPS, NORM, "own", seed=0, episodes_per_batch=EPISODES, net_cfg=NET)
     assert row["episodes"] == 3 * 8 * 2 * EPISODES

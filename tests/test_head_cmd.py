@@ -49,7 +49,10 @@ def _tiny_config(tmp_path):
     return path
 
 
+@pytest.mark.slow
 def test_the_documented_local_job_submit_recipe_works_as_written(tmp_path):
+    """Slow tier (2-3 minutes on 2 cores: a Ray head, a job's own driver and actors): the default
+    suite checks the recipe's commands against the CLI instead (the test below)."""
     script = recipe()
     run_dir = tmp_path / "job"
     # only the config (a tiny stream) and the run directory change; every command stays as written
@@ -74,6 +77,32 @@ def test_the_documented_local_job_submit_recipe_works_as_written(tmp_path):
     finally:
         if (state / "head.json").is_file():
             _head(state, "stop")
+
+
+def test_the_recipe_s_commands_are_the_cli_s(tmp_path):
+    """The default suite's check of the documented recipe (run as written in the slow tier): its
+    five lines, in order, and every ``covers-dist`` command in it, the job's entrypoint included,
+    accepted by the CLI's own parser with the recipe's arguments."""
+    import shlex
+
+    from covers_dist.cli import build_parser
+    from covers_dist.config import load_config
+
+    lines = [line.split("#")[0].strip() for line in recipe().strip().splitlines()]
+    assert [line.split()[:3] for line in lines] == [
+        ["covers-dist", "head", "start"], ["eval", '"$(covers-dist', "head"], ["ray", "job", "submit"],
+        ["covers-dist", "head", "status"], ["covers-dist", "head", "stop"],
+    ]  # fmt: skip
+    assert lines[1] == 'eval "$(covers-dist head env)"'
+    submit = shlex.split(lines[2].replace("$PWD", str(tmp_path)))
+    entry = submit[submit.index("--") + 1 :]
+    assert submit[:5] == ["ray", "job", "submit", "--working-dir", "."] and entry[0] == "covers-dist"
+    config = entry[entry.index("--config") + 1]
+    load_config(str(ROOT / config))  # the job's config loads and validates
+    parser = build_parser()
+    for argv in (["head", "start"], ["head", "env"], entry[1:], ["head", "status"], ["head", "stop"]):
+        args = parser.parse_args(argv)  # an unknown command or option exits 2 here
+        assert callable(getattr(args, "func", None)), argv
 
 
 def test_head_refuses_bad_input(tmp_path, capsys):

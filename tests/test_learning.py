@@ -59,7 +59,12 @@ def evaluate(model, deterministic: bool, seed: int = 10**6) -> dict[str, float]:
     return rates
 
 
+@pytest.mark.slow
 def test_equivariant_policy_transfers_zero_shot_and_cnn_twin_does_not(one_torch_thread):
+    """Slow tier (1-2 minutes on 2 cores: two networks trained to a threshold). The default suite
+    checks the equivariance it rests on: the networks exactly (tests/test_models.py) and closed-loop,
+    a trained policy scoring alike on every copy of one state (tests/test_evaluation.py,
+    tests/test_learning_metaworld.py)."""
     start = time.perf_counter()
     equi, equi_history = train("equivariant", max_updates=40)
     # as many updates as the equivariant net took, with the same stopping rule (on 2 cores the CNN

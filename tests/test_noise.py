@@ -212,7 +212,11 @@ def test_the_loop_samples_each_batch_with_its_policy_s_faded_colour(faded_run, t
     assert (resumed / "episodes.jsonl").read_text() == (clean / "episodes.jsonl").read_text()
 
 
+@pytest.mark.slow
 def test_ray_workers_sample_with_the_faded_colour_as_the_serial_loop(ray_local, faded_run, tmp_path):
+    """Slow tier (half a minute beside the other pytest worker): the default suite checks the
+    colour the driver computes (the serial loop, above) and that a rollout worker samples with the
+    colour it is given (below); the chaos test holds a Ray run of two workers to its serial run."""
     trainer = Trainer(tiny_cfg(tmp_path, "runtime.total_env_steps=2400", "runtime.serial=false", *FADE),
                       log=lambda *_: None)  # fmt: skip
     trainer.run()

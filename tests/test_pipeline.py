@@ -90,10 +90,13 @@ def test_ray_pipelined_run_equals_the_serial_pipelined_run(ray_local, tiny_seria
     _same_weights(distributed[1], serial[1])
 
 
+@pytest.mark.slow
 def test_policies_sharing_one_learner_process_train_as_with_a_process_each(ray_local, tiny_serial_run, tmp_path):
     """runtime.learners_per_process: every policy's learner in one Ray process (the one started ahead
     too); the run ends with the serial run's assignments and weights, and one learner process was
-    recorded where the default starts one per policy."""
+    recorded where the default starts one per policy. Slow tier (half a minute beside the other
+    worker): the default suite's chaos test runs its two policies' learners in one process, kills
+    it, and must still end equal to the serial run."""
     from covers_dist.runtime.processes import list_processes
 
     serial = tiny_serial_run[:2]

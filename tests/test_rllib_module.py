@@ -64,10 +64,14 @@ def test_module_outputs_match_the_covers_network_and_stay_equivariant(kind):
 
 
 def test_rllib_ppo_trains_the_covers_network(ray_local):
-    from covers_dist.bench.rllib_peer import build_rllib_ppo
+    from covers_dist.bench.rllib_peer import build_rllib_ppo, rllib_hyperparameters
+    from test_bench_learn import assert_equal_terms
 
-    algo = build_rllib_ppo(_cfg(), "covers")
+    cfg = _cfg("ppo.lr_schedule=linear", "ppo.target_kl=0.02")
+    algo = build_rllib_ppo(cfg, "covers")
     try:
+        # on equal terms: covers-dist's PPO settings, read back from the built algorithm
+        assert_equal_terms(rllib_hyperparameters(algo, "covers", cfg), cfg)
         module = algo.get_module()
         before = {k: v.detach().clone() for k, v in module.net.named_parameters()}
         result = algo.train()
