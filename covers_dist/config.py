@@ -271,6 +271,16 @@ class PPOConfig:
         "update 0 to this at ppo.total_updates, and stays there (the exploration noise shrinks on a schedule "
         "without an entropy term; docs/learning.md). null: the standard deviation is learned freely.",
     )
+    weight_average: float | None = _f(
+        None,
+        "Decay d of an exponential moving average of the policy's weights, kept by its learner beside them and "
+        "moved after every update (avg = d * avg + (1 - d) * weights; the parameters are the equivariant basis "
+        "coefficients, so the average is exactly equivariant too). Training never acts with it: `bench learn` "
+        "evaluates it, with the newest weights beside it on the same points (docs/learning.md, \"The average of "
+        "the last weights\"). null: none kept.",
+        gt=0.0,
+        max=0.999,
+    )
     norm_adv: bool = _f(True, "Normalize advantages per minibatch.")
     total_updates: int | None = _f(
         None,

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from covers_dist.bench.learn import GroupEvaluation, peer_budget, race, ratios
+from covers_dist.bench.learn import AVERAGED_VERSION, GroupEvaluation, peer_budget, race, ratios
 from covers_dist.config import config_to_dict, load_config
 from covers_dist.symmetry import get_group
 
@@ -249,10 +249,11 @@ def test_covers_training_does_not_depend_on_when_it_is_evaluated(tmp_path, one_t
     from covers_dist.bench.learn import _CoversContender
 
     runs = []
-    for name, evaluate in (("plain", False), ("evaluated", True)):
+    for name, evaluate, extra in (("plain", False, []), ("evaluated", True, []), ("averaged", True, ["ppo.weight_average=0.9"])):
         cfg = load_config("configs/smoke.yaml", [
             "env.tasks=[reach]", "env.episodes_per_task=1", "runtime.serial=true", "ppo.epochs=1",
             "runtime.pipeline=true", "network.channels=[2,4]", "network.hidden=8", f"runtime.run_dir={tmp_path / name}",
+            *extra,
         ])  # fmt: skip
         contender = _CoversContender(cfg)
         evaluator = GroupEvaluation(cfg, "reach", D4[:2], episodes=1, seed=cfg.seed)
@@ -262,14 +263,27 @@ def test_covers_training_does_not_depend_on_when_it_is_evaluated(tmp_path, one_t
                 if evaluate:
                     contender.before_eval()
                     evaluator.evaluate(contender)
+                    for shadow in contender.shadows().values():
+                        evaluator.evaluate(SimpleNamespace(choose=contender.choose, weights_map=lambda w=shadow: dict(w)))
             version, weights = contender.trainer.backend.call_learner(0, "weights")
             runs.append((version, contender.trainer.weights.versions[0], weights))
+            if extra:  # ppo.weight_average: the evaluation acted with the learner's average, the newest beside it
+                (acted_version, acted), = contender.weights_map().values()
+                (_, newest), = contender.shadows()["newest"].values()
+                assert acted_version < AVERAGED_VERSION
+                average = contender.trainer.backend.call_learner(0, "averaged_weights")[1]
+                assert all(torch.equal(acted[k], average[k]) for k in acted)
+                assert all(torch.equal(newest[k], weights[k]) for k in newest)
+                assert not all(torch.equal(acted[k], weights[k]) for k in acted)
+            else:
+                assert contender.shadows() == {}
         finally:
             evaluator.close()
             contender.close()
-    (v1, published1, w1), (v2, published2, w2) = runs
-    assert (v1, published1) == (v2, published2)
-    assert all(torch.equal(w1[k], w2[k]) for k in w1)
+    (v1, published1, w1), *others = runs
+    for v2, published2, w2 in others:  # evaluating, and evaluating an average too, change nothing in training
+        assert (v1, published1) == (v2, published2)
+        assert all(torch.equal(w1[k], w2[k]) for k in w1)
 
 
 class _FakeContender:
@@ -322,6 +336,49 @@ def test_race_is_solved_at_two_evaluations_in_a_row_or_stops_at_the_budget():
     assert res["first_at_threshold_env_steps"] is None
     assert [p["env_steps"] for p in res["curve"]] == [0, 1200, 1600]  # the budget's end is evaluated too
     assert res["best_min_success"] == 0.0 and res["best_mean_success"] == pytest.approx(0.5 / 8)
+
+
+class _AveragedContender(_FakeContender):
+    """Acts with "averaged" weights and has the "newest" evaluated beside them (as ppo.weight_average does)."""
+
+    def weights_map(self):
+        return {0: (-1, "averaged")}
+
+    def shadows(self):
+        return {"newest": {0: (-2, "newest")}}
+
+    def choose(self, first_frames, group_ids):
+        return {"policy_id": 0, "decision": "only", "nearest_distance": None}
+
+
+class _WeightsEvaluator(_FakeEvaluator):
+    """Success 1 on every transform where the weights it is given have succeeded by then."""
+
+    def __init__(self, trained, success_from):
+        self.trained, self.success_from = trained, success_from
+
+    def evaluate(self, contender):
+        which = contender.weights_map()[0][1]
+        hit = self.trained.env_steps >= self.success_from[which] or self.trained.env_steps == 1200 and which == "newest"
+        out = _FakeEvaluator.evaluate(self, SimpleNamespace(env_steps=0, success_at=None, lucky_at=None))
+        return {**out, "success": {g: (1.0 if hit else 0.0) for g in D4}}
+
+
+def test_race_evaluates_the_shadow_weights_on_the_same_points_and_stops_on_its_own():
+    trained = _AveragedContender(per_iter=300, success_at=None)
+    res = race("fake", trained, _WeightsEvaluator(trained, {"averaged": 1500, "newest": 3000}), 0.9, 1000,
+               10_000, 600.0, log=lambda _: None)  # fmt: skip
+    assert res["reached"] and res["env_steps_to_threshold"] == 3000  # the contender's own weights decide
+    newest = [p["shadows"]["newest"] for p in res["curve"]]
+    assert [q["min_success"] for q in newest] == [0.0, 1.0, 0.0, 1.0]  # 0, 1200 (lucky), 2100, 3000
+    assert [q["held"] for q in newest] == [0, 1, 0, 1]
+    assert res["shadows"] == {
+        "newest": {"first_at_threshold_env_steps": 1200, "env_steps_to_threshold": None, "best_min_success": 1.0}
+    }
+    assert res["eval_s"] >= sum(q["eval_s"] for q in newest)
+    plain = race("fake", _FakeContender(per_iter=300, success_at=1500), _FakeEvaluator(), 0.9, 1000, 10_000, 600.0,
+                 log=lambda _: None)  # fmt: skip
+    assert "shadows" not in plain and all("shadows" not in p for p in plain["curve"])
 
 
 def test_ratios_need_both_contenders_to_reach():

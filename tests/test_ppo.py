@@ -326,6 +326,46 @@ def test_log_std_cap_needs_a_horizon_and_survives_a_checkpoint():
     assert clone.update(episodes)["log_std_cap"] == learner.update(episodes)["log_std_cap"] == pytest.approx(-0.3)
 
 
+def test_weight_average_follows_the_updates_changes_no_training_and_stays_equivariant():
+    """``ppo.weight_average``: avg = d * avg + (1 - d) * weights after every update, from the initial
+    weights; the trained weights are those of a learner without it; it survives a checkpoint and
+    is an exactly equivariant network."""
+    from covers_dist.models import equivariance_errors
+
+    runs = {}
+    for decay in (None, 0.5):
+        model = make_model(seed=3)
+        learner = PPOLearner(model, PPOConfig(epochs=1, minibatch_size=48, lr=1e-3, weight_average=decay), seed=1)
+        episodes = make_episodes(model, seed=2)
+        seen = [model.get_weights()]
+        for _ in range(2):
+            learner.update(episodes)
+            seen.append(model.get_weights())
+        runs[decay] = (learner, seen)
+    plain, averaged = runs[None], runs[0.5]
+    assert all(weights_equal(a, b) for a, b in zip(plain[1], averaged[1]))  # training never reads the average
+    w0, w1, w2 = averaged[1]
+    avg = averaged[0].averaged_weights()
+    for name in w0:
+        torch.testing.assert_close(avg[name], 0.25 * w0[name] + 0.25 * w1[name] + 0.5 * w2[name], rtol=0, atol=1e-6)
+    assert not weights_equal(avg, w2)
+    with pytest.raises(ValueError, match="ppo.weight_average"):
+        plain[0].averaged_weights()
+    # a checkpoint keeps it; a state saved without one starts it from the saved weights
+    clone = PPOLearner(make_model(seed=9), averaged[0].cfg)
+    clone.load_state_dict(averaged[0].state_dict())
+    assert weights_equal(clone.averaged_weights(), avg)
+    clone.load_state_dict(plain[0].state_dict())
+    assert weights_equal(clone.averaged_weights(), plain[1][-1])
+    # the average is a network of the same group: exactly equivariant
+    net = make_model(seed=5)
+    net.set_weights(avg)
+    episode = make_episodes(net, n=1)[0]
+    obs = {"image": episode["image"][:3], "proprio": episode["proprio"][:3]}
+    for g, row in equivariance_errors(net, obs).items():
+        assert max(row.values()) < 1e-4, (g, row)
+
+
 def test_peers_follow_the_learners_schedule_update_by_update():
     """bench learn's peers get covers-dist's linear schedule: SB3 through its learning-rate callable,
     RLlib through its piecewise schedule of env steps; each gives update k the learner's rate."""

@@ -107,6 +107,8 @@ LEGEND_INSIDE = 5
 HELD_EVALUATIONS = 2
 #: What a curve point keeps of each transform's failed episodes (``covers_dist.evaluation.stats.miss_summary``).
 MISS_KEYS = ("misses", "misses_closest_median", "near_misses")
+#: Versions of the weight averages an evaluation acts with count down from here (never a published one).
+AVERAGED_VERSION = -(2**40)
 
 #: A greedy policy: a batch of observations (``image`` uint8 (B, S, S, 3), ``proprio`` (B, P)) ->
 #: the actions (B, A) to send to the envs.
@@ -314,6 +316,11 @@ class _CoversContender:
         if getattr(backend, "name", "") == "ray":  # wait until the rollout actors are up: start-up, not training
             backend.ray.get([w.stats.remote() for w in backend.workers])
         self._weights: dict[int, tuple[int, Any]] = {}  # what the evaluation acts with (before_eval)
+        # ppo.weight_average: the evaluation acts with each policy's moving average of its weights, and the
+        # newest weights are evaluated beside it on the same initial states (shadows)
+        self.averaged = cfg.ppo.weight_average is not None
+        self._shadows: dict[str, dict[int, tuple[int, Any]]] = {}
+        self._evals = 0
 
     @property
     def env_steps(self) -> int:
@@ -328,9 +335,20 @@ class _CoversContender:
         # the newest weights, without publishing the update in flight: training goes on exactly as
         # it would without this evaluation (the run does not depend on --eval-every)
         self._weights = self.trainer.newest_weights()
+        if self.averaged:
+            self._evals += 1
+            self._shadows = {"newest": self._weights}
+            version = AVERAGED_VERSION - self._evals  # never a version the workers or an earlier pass hold
+            call = self.trainer.backend.call_learner
+            self._weights = {pid: (version, call(pid, "averaged_weights")[1]) for pid in self._weights}
 
     def weights_map(self) -> dict[int, tuple[int, Any]]:
         return dict(self._weights)
+
+    def shadows(self) -> dict[str, dict[int, tuple[int, Any]]]:
+        """Other weights evaluated at each point beside the contender's own: ``{"newest": ...}`` when
+        the evaluation acts with the moving average (``ppo.weight_average``), else none."""
+        return dict(self._shadows)
 
     def choose(self, first_frames: Mapping[str, np.ndarray], group_ids: Sequence[int]) -> dict[str, Any]:
         """The policy the bank would pick for these first frames (the only one when it holds one;
@@ -370,6 +388,7 @@ class _CoversContender:
             **({} if cfg.ppo.noise_fade_success is None else {"noise_fade_success": float(cfg.ppo.noise_fade_success)}),
             **({} if cfg.ppo.noise_fraction == 1.0 else {"noise_fraction": float(cfg.ppo.noise_fraction)}),
             **({} if cfg.ppo.noise_entries == "all" else {"noise_entries": cfg.ppo.noise_entries}),
+            **({} if cfg.ppo.weight_average is None else {"weight_average": float(cfg.ppo.weight_average)}),
         }
 
     def close(self) -> None:
@@ -486,6 +505,7 @@ def race(
     train_s, eval_s, next_eval = 0.0, 0.0, 0
     streak = 0  # consecutive evaluations at or above the threshold
     reached: dict[str, Any] | None = None
+    shadow_streaks: dict[str, int] = {}  # the same, per shadow (weights evaluated beside the contender's own)
 
     def evaluate() -> dict[str, Any]:
         nonlocal train_s, eval_s, streak
@@ -514,6 +534,23 @@ def race(
         }
         streak = streak + 1 if point["min_success"] >= threshold else 0
         point["held"] = streak
+        shadow_txt = ""
+        for shadow, weights in (contender.shadows() if hasattr(contender, "shadows") else {}).items():
+            t2 = time.perf_counter()
+            other = evaluator.evaluate(_FixedWeights(contender.choose, weights))
+            spent_shadow = time.perf_counter() - t2
+            eval_s += spent_shadow
+            got = list(other["success"].values())
+            shadow_streaks[shadow] = shadow_streaks.get(shadow, 0) + 1 if min(got) >= threshold else 0
+            point.setdefault("shadows", {})[shadow] = {
+                "min_success": float(min(got)),
+                "mean_success": float(np.mean(got)),
+                "success": other["success"],
+                "pooled": other["pooled"],
+                "held": shadow_streaks[shadow],
+                "eval_s": round(spent_shadow, 3),
+            }
+            shadow_txt += f"{shadow} weights: min {min(got):.2f} mean {np.mean(got):.2f}; "
         curve.append(point)
         steps = point["env_steps"]
         rate = steps / train_s if train_s > 0 else 0.0
@@ -527,7 +564,7 @@ def race(
             f"learn {name}: {steps} env steps, {train_s:.1f} s training ({rate:.0f} steps/s), success min "
             f"{point['min_success']:.2f} mean {point['mean_success']:.2f} on {point['distinct_initial_states']} "
             f"initial states ({point['episodes_per_transform']} per transform; eval {spent:.1f} s), "
-            f"{_misses_text(point['misses'])}{streak} in a row >= {threshold}; {eta_txt}"
+            f"{_misses_text(point['misses'])}{streak} in a row >= {threshold}; {shadow_txt}{eta_txt}"
         )
         return point
 
@@ -576,7 +613,32 @@ def race(
         "eval_s": round(eval_s, 3),
         "steps_per_s": round(final_steps / train_s, 1) if train_s > 0 else None,
         "curve": curve,
+        **({"shadows": _shadow_summary(curve, threshold, held)} if shadow_streaks else {}),
     }
+
+
+class _FixedWeights:
+    """A contender's bank choice with other weights: what a shadow evaluation acts with."""
+
+    def __init__(self, choose: Callable[..., dict[str, Any]], weights: Mapping[int, tuple[int, Any]]) -> None:
+        self.choose, self._weights = choose, dict(weights)
+
+    def weights_map(self) -> dict[int, tuple[int, Any]]:
+        return dict(self._weights)
+
+
+def _shadow_summary(curve: Sequence[Mapping[str, Any]], threshold: float, held: int) -> dict[str, Any]:
+    """Per shadow: where it first met ``threshold`` on every transform, where it held (``held`` in a
+    row) and its best worst transform, over the points it was evaluated at."""
+    out: dict[str, Any] = {}
+    for name in sorted({k for p in curve for k in p.get("shadows", {})}):
+        points = [(p["env_steps"], p["shadows"][name]) for p in curve if name in p.get("shadows", {})]
+        out[name] = {
+            "first_at_threshold_env_steps": next((s for s, q in points if q["min_success"] >= threshold), None),
+            "env_steps_to_threshold": next((s for s, q in points if q["held"] >= held), None),
+            "best_min_success": max(q["min_success"] for _, q in points),
+        }
+    return out
 
 
 def _misses_text(misses: Mapping[str, Mapping[str, Any]]) -> str:
@@ -672,7 +734,7 @@ def ratios(contenders: Mapping[str, Mapping[str, Any]]) -> dict[str, float | Non
 
 def plot_curves(result: Mapping[str, Any], path: str | Path) -> Path:
     """Min-over-transforms (solid) and mean (dashed) success of each contender, vs env steps and
-    vs training seconds, with the threshold; written to ``path`` (Agg backend)."""
+    vs training seconds, with the threshold (a shadow's min dotted); written to ``path`` (Agg backend)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -688,6 +750,10 @@ def plot_curves(result: Mapping[str, Any], path: str | Path) -> Path:
             xs = [p[key] for p in curve]
             ax.plot(xs, [p["min_success"] for p in curve], "-o", color=color, ms=3, label=f"{name} min")
             ax.plot(xs, [p["mean_success"] for p in curve], "--", color=color, alpha=0.7, label=f"{name} mean")
+            for shadow in sorted({k for p in curve for k in p.get("shadows", {})}):  # e.g. the newest weights
+                pts = [p for p in curve if shadow in p.get("shadows", {})]
+                ax.plot([p[key] for p in pts], [p["shadows"][shadow]["min_success"] for p in pts], ":x", color=color,
+                        ms=4, label=f"{name} min, {shadow} weights")  # fmt: skip
     for ax, label in zip(axes, ("env steps", "training wall-clock (s)")):
         ax.axhline(result["threshold"], color="grey", lw=0.8, ls=":")
         ax.set_xlabel(label)

@@ -243,6 +243,8 @@ class PPOLearner:
         self.return_norm = ReturnNormalizer(ppo_cfg.gamma) if ppo_cfg.reward_norm == "return" else None
         # where the falling cap starts: the model's log std before any update (network.init_log_std)
         self.log_std_start = float(model.log_std_free.detach().max()) if ppo_cfg.log_std_cap is not None else None
+        # ppo.weight_average: the moving average of the weights (what `bench learn` evaluates), from the initial ones
+        self.averaged = model.get_weights() if ppo_cfg.weight_average is not None else None
 
     def learning_rate(self) -> float:
         """The learning rate the next update will use."""
@@ -370,6 +372,7 @@ class PPOLearner:
         self.model.train(was_training)
         self.update_count += 1
         cap = self._apply_log_std_cap()
+        self._move_average()
         self.skipped_total += skipped
         elapsed = time.perf_counter() - start
         stats: dict[str, Any] = {k: (v / steps if steps else float("nan")) for k, v in sums.items()}
@@ -426,6 +429,21 @@ class PPOLearner:
         self.model.log_std_free.clamp_(max=cap)
         return cap
 
+    @torch.no_grad()
+    def _move_average(self) -> None:
+        """One step of ``ppo.weight_average``'s moving average towards the weights after this update."""
+        if self.averaged is None:
+            return
+        decay = float(self.cfg.weight_average)
+        for name, w in self.model.get_weights().items():
+            self.averaged[name].mul_(decay).add_(w, alpha=1.0 - decay)
+
+    def averaged_weights(self) -> dict[str, torch.Tensor]:
+        """A copy of the moving average of the weights (``ppo.weight_average``), in :meth:`get_weights`'s form."""
+        if self.averaged is None:
+            raise ValueError("no weight average is kept: set ppo.weight_average (a decay in (0, 1))")
+        return {name: w.clone() for name, w in self.averaged.items()}
+
     # ---- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         """Model weights, optimizer state, counters and the shuffling RNG (deep copies)."""
@@ -438,6 +456,7 @@ class PPOLearner:
             "seed": self.seed,
             "return_norm": None if self.return_norm is None else self.return_norm.state_dict(),
             "log_std_start": self.log_std_start,
+            "averaged": None if self.averaged is None else self.averaged_weights(),
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -453,6 +472,9 @@ class PPOLearner:
         self.seed = int(state.get("seed", self.seed))
         if self.cfg.log_std_cap is not None and state.get("log_std_start") is not None:
             self.log_std_start = float(state["log_std_start"])
+        if self.averaged is not None:  # a state saved without an average starts it from its weights
+            saved_avg = state.get("averaged")
+            self.averaged = {n: w.clone() for n, w in (saved_avg or state["model"]).items()}
         saved = state.get("return_norm")
         if self.return_norm is not None:
             if saved is None:  # a learner saved without return normalisation: its statistics start afresh

@@ -86,6 +86,10 @@ class PolicyLearner:
     def weights(self) -> tuple[int, dict[str, torch.Tensor]]:
         return self.version, self.model.get_weights()
 
+    def averaged_weights(self) -> tuple[int, dict[str, torch.Tensor]]:
+        """The version and the moving average of the weights (``ppo.weight_average``; an error when none is kept)."""
+        return self.version, self.ppo.averaged_weights()
+
     def update(
         self, episodes: list[Any], base_version: int | None = None
     ) -> tuple[dict[str, Any], int, dict[str, torch.Tensor]]:
@@ -226,7 +230,7 @@ class LearnerPool:
         return self.learner(policy_id).update(episodes, base_version)
 
     def call(self, policy_id: int, method: str, *args: Any) -> Any:
-        """``method`` of the policy's learner (``weights``, ``state_dict``, ``load_state_dict``)."""
+        """``method`` of the policy's learner (``weights``, ``averaged_weights``, ``state_dict``, ``load_state_dict``)."""
         return getattr(self.learner(policy_id), method)(*args)
 
 
