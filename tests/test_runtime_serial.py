@@ -1,7 +1,9 @@
 """The COVERS loop in one process: phases, checkpoints, resume, determinism."""
 
 import json
+import os
 import shutil
+import signal
 
 import numpy as np
 import pytest
@@ -58,6 +60,36 @@ def test_same_seed_same_assignments_and_losses(tiny_serial_run, tmp_path):
         rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
         runs.append((recorded, [r.get("ppo/policy_loss") for r in rows], [r["return/" + t] for r in rows for t in ["reach", "push", "avoid"] if "return/" + t in r]))
     assert len(runs[0][1]) == 4 and runs[0] == runs[1]
+
+
+def test_sigterm_checkpoints_after_the_iteration_and_the_resumed_run_ends_as_the_unbroken_one(tiny_serial_run, tmp_path):
+    """SIGTERM in the middle of a run, in this process (the signal sent from the loop's own iteration
+    hook): the run stops after that iteration, checkpoints it, and a resume ends exactly where the
+    unbroken run of conftest.py ends. The same as a user's `covers-dist train` process:
+    tests/test_train_cli.py (start-up; the whole CLI round trip is in the slow tier)."""
+    cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=1600", "runtime.checkpoint_every=100")
+    logs = []
+    first = Trainer(cfg, log=logs.append)
+    first.on_iteration.append(lambda: first.iteration == 2 and os.kill(os.getpid(), signal.SIGTERM))
+    result = first.run()
+    first.close()
+    assert result["status"] == "interrupted" and first.iteration == 2
+    assert any(line.startswith("received signal") for line in logs)
+    assert [c.name for c in list_checkpoints(tmp_path)] == ["ckpt-000002"]
+    second = Trainer(cfg, resume=True, log=lambda *_: None)
+    assert second.run()["status"] == "finished"
+    weights = {pid: second.backend.call_learner(pid, "weights")[1] for pid in sorted(second.weights.versions)}
+    second.close()
+    assert weights.keys() == tiny_serial_run[1].keys()
+    for pid, w in weights.items():
+        assert all(np.array_equal(np.asarray(w[k]), np.asarray(tiny_serial_run[1][pid][k])) for k in w), pid
+    rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3, 4]
+    episodes = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
+    assert [e["episode_index"] for e in episodes] == list(range(32))
+    unbroken = [json.loads(line) for line in (tiny_serial_run[2] / "metrics.jsonl").read_text().splitlines()]
+    assert assignments(second) == tiny_serial_run[0]
+    assert [r.get("ppo/policy_loss") for r in rows] == [r.get("ppo/policy_loss") for r in unbroken]
 
 
 def test_resume_continues_with_the_same_bank_and_counters(tmp_path):

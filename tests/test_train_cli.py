@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 EXE = str(Path(sys.executable).parent / "covers-dist")
 SMALL = ["--set", "env.episodes_per_task=8", "--set", "env.max_episode_steps=50", "--set", "clustering.update_every=8", "--set", "ppo.epochs=1",
@@ -28,7 +30,11 @@ def _lines(path):
     return [json.loads(x) for x in path.read_text().splitlines()] if path.is_file() else []
 
 
+@pytest.mark.slow
 def test_sigterm_checkpoints_and_resume_continues(tmp_path):
+    """The whole round trip as a user makes it: two processes. The default suite keeps the same signal
+    in process (tests/test_runtime_serial.py: checkpointed, resumed, equal to the unbroken run) and a
+    SIGTERM to a starting `covers-dist train` process (below)."""
     run = tmp_path / "run"
     cmd = [EXE, "train", "--config", "configs/smoke.yaml", "--serial", "--run-dir", str(run), *SMALL,
            "--set", "runtime.total_env_steps=2400", "--set", "runtime.checkpoint_every=100"]  # 6 iterations
