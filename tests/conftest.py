@@ -55,7 +55,7 @@ def tiny_serial_run(tmp_path_factory):
     """One serial run of tests/test_runtime_serial.py's tiny config (1600 env steps: 4 iterations,
     pipelined as by default), made once for every test that compares with it or reads it:
     ``(assignments, {policy id: weights}, run directory)``. Nothing may write into the directory."""
-    from test_runtime_serial import assignments, tiny_cfg
+    from test_runtime_serial import assignments, learner_weights, tiny_cfg
 
     from covers_dist.runtime.driver import Trainer
 
@@ -63,8 +63,7 @@ def tiny_serial_run(tmp_path_factory):
     trainer = Trainer(tiny_cfg(run_dir, "runtime.total_env_steps=1600"), log=lambda *_: None)
     try:
         assert trainer.run()["status"] == "finished"
-        weights = {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.weights.versions)}
-        return assignments(trainer), weights, run_dir
+        return assignments(trainer), learner_weights(trainer), run_dir
     finally:
         trainer.close()
 

@@ -14,8 +14,7 @@ from covers_dist.runtime.learner import PolicyLearner, live_state_key
 from covers_dist.runtime.processes import list_processes
 from covers_dist.runtime.rollout import EpisodeSpec, RolloutWorker
 
-from test_pipeline import _same_weights
-from test_runtime_serial import assignments, tiny_cfg
+from test_runtime_serial import assignments, learner_weights, same_weights, tiny_cfg
 
 
 @pytest.fixture(scope="module")
@@ -206,10 +205,10 @@ def test_learner_killed_during_updates_ends_where_the_clean_run_ends(ray_local, 
             kills += 1
             _wait_for_new_pid(tmp_path / "r", "learner", learner["pid"])
     trainer.drain()
-    got = assignments(trainer), {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.weights.versions)}
+    got = assignments(trainer), learner_weights(trainer)
     versions = {pid: trainer.backend.call_learner(pid, "weights")[0] for pid in sorted(trainer.weights.versions)}
     trainer.close()
     assert kills == 2
     assert got[0] == serial[0]
-    _same_weights(got[1], serial[1])
+    same_weights(got[1], serial[1])
     assert versions[0] == sum(1 for pid, _ in serial[0] if pid == 0)  # one version per update: none doubled

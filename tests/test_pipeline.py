@@ -4,11 +4,10 @@ reproducible, resumable mid-pipeline, and equal on Ray and in one process."""
 import json
 
 import pytest
-import torch
 
 from covers_dist.runtime.driver import Trainer
 
-from test_runtime_serial import assignments, tiny_cfg
+from test_runtime_serial import assignments, learner_weights, same_weights, tiny_cfg
 
 
 def _run(cfg, resume=False):
@@ -16,8 +15,7 @@ def _run(cfg, resume=False):
     trainer.run()
     if not cfg.runtime.learner_ahead:  # the tiny config: every learner started when its policy appeared
         assert trainer.backend.spare_learners() == []
-    weights = {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.weights.versions)}
-    result = (assignments(trainer), weights)
+    result = (assignments(trainer), learner_weights(trainer))
     trainer.close()
     return result
 
@@ -41,13 +39,6 @@ def _policy_per_iteration(run_dir):
         acted.setdefault(e["iteration"], set()).add(e["assigned_policy"])
     assert all(len(p) == 1 for p in acted.values())  # one policy trains on an iteration's batch
     return {it: p.pop() for it, p in acted.items()}
-
-
-def _same_weights(a, b):
-    assert a.keys() == b.keys()
-    for pid in a:
-        for name in a[pid]:
-            assert torch.equal(a[pid][name], b[pid][name]), (pid, name)
 
 
 def test_pipelined_rows_report_the_previous_update_and_differ_from_sequential(tiny_serial_run, tmp_path):
@@ -74,7 +65,7 @@ def test_pipelined_run_resumed_from_a_checkpoint_with_an_update_in_flight_equals
     assert state["pending_update"]["policy_id"] in state["policies"]  # the checkpoint held an update in flight
     resumed = _run(tiny_cfg(tmp_path / "cut", "runtime.total_env_steps=2000", "runtime.checkpoint_every=100"), True)
     assert resumed[0] == full[0]
-    _same_weights(resumed[1], full[1])
+    same_weights(resumed[1], full[1])
     assert _losses(tmp_path / "cut")[2:] == _losses(tmp_path / "full")[2:]
     assert _batches(tmp_path / "cut")[2:] == _batches(tmp_path / "full")[2:]  # the restored update names its batch
 
@@ -87,7 +78,7 @@ def test_ray_pipelined_run_equals_the_serial_pipelined_run(ray_local, tiny_seria
     serial = tiny_serial_run[:2]  # the same config, 1600 env steps, in this process
     distributed = _run(tiny_cfg(tmp_path / "r", "runtime.total_env_steps=1600", "runtime.serial=false"))
     assert distributed[0] == serial[0]
-    _same_weights(distributed[1], serial[1])
+    same_weights(distributed[1], serial[1])
 
 
 @pytest.mark.slow
@@ -107,10 +98,9 @@ def test_policies_sharing_one_learner_process_train_as_with_a_process_each(ray_l
     trainer.run()
     assert trainer.backend.learner_processes() == 1
     assert trainer.backend.spare_learners() == [max(trainer.weights.versions) + 1]
-    weights = {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.weights.versions)}
-    shared = (assignments(trainer), weights)
+    shared = (assignments(trainer), learner_weights(trainer))
     trainer.close()
     assert shared[0] == serial[0]
-    _same_weights(shared[1], serial[1])
+    same_weights(shared[1], serial[1])
     learners = [p for p in list_processes(tmp_path / "r") if p["role"] == "learner"]
     assert [p["index"] for p in learners] == [0]

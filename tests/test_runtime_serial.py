@@ -7,6 +7,7 @@ import signal
 
 import numpy as np
 import pytest
+import torch
 
 from covers_dist.config import load_config
 from covers_dist.runtime.checkpoint import CheckpointError, latest_valid_checkpoint, list_checkpoints, verify_checkpoint
@@ -34,6 +35,19 @@ def tiny_cfg(tmp_path, *extra):
 
 def assignments(trainer):
     return [(r["policy_id"], r["decision"]) for r in trainer.backend.call_clustering("assignments", 0, 1000)]
+
+
+def learner_weights(trainer):
+    """{policy id: its learner's newest weights}, every policy of the trainer's bank."""
+    return {pid: trainer.backend.call_learner(pid, "weights")[1] for pid in sorted(trainer.weights.versions)}
+
+
+def same_weights(a, b):
+    """Two {policy id: weights} maps (learner_weights) name the same policies, bit for bit equal."""
+    assert a.keys() == b.keys()
+    for pid in a:
+        for name in a[pid]:
+            assert torch.equal(a[pid][name], b[pid][name]), (pid, name)
 
 
 def test_serial_loop_runs_phases_and_writes_metrics(tiny_serial_run):
@@ -78,11 +92,9 @@ def test_sigterm_checkpoints_after_the_iteration_and_the_resumed_run_ends_as_the
     assert [c.name for c in list_checkpoints(tmp_path)] == ["ckpt-000002"]
     second = Trainer(cfg, resume=True, log=lambda *_: None)
     assert second.run()["status"] == "finished"
-    weights = {pid: second.backend.call_learner(pid, "weights")[1] for pid in sorted(second.weights.versions)}
+    weights = learner_weights(second)
     second.close()
-    assert weights.keys() == tiny_serial_run[1].keys()
-    for pid, w in weights.items():
-        assert all(np.array_equal(np.asarray(w[k]), np.asarray(tiny_serial_run[1][pid][k])) for k in w), pid
+    same_weights(weights, tiny_serial_run[1])
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows] == [1, 2, 3, 4]
     episodes = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
