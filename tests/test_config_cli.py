@@ -92,6 +92,16 @@ def test_group_fast_is_quickstart_with_the_measured_overrides():
     assert load_config("group_fast") == load_config("quickstart", measured)
 
 
+def test_group_alone_is_group_fast_with_the_measured_overrides():
+    # docs/learning.md's separate-critic runs ran `bench learn` with group_fast's settings and these
+    measured = ["ppo.target_kl=0.02", "ppo.lr_schedule=linear", "network.critic=separate",
+                "runtime.run_dir=runs/group-alone", "name=group-alone"]  # fmt: skip
+    assert load_config("group_alone") == load_config("group_fast", measured)
+    # the falling rate needs the run's length: a learner's ppo gets it from the run's budget
+    cfg = load_config("group_alone")
+    assert cfg.ppo.total_updates is None and cfg.learner_ppo.total_updates == cfg.updates_per_run > 0
+
+
 def test_a_base_file_gives_every_value_the_file_does_not_set(tmp_path):
     (tmp_path / "parent.yaml").write_text(
         "seed: 5\nppo:\n  lr: 1.0e-4\n  epochs: 7\nnetwork:\n  channels: [4, 8, 8, 16, 16, 16]\n"
