@@ -118,6 +118,12 @@ class EnvConfig:
     )
     camera_shift: float = _f(0.0, "Camera xy shift dp in metres (robustness evaluation).", min=0.0)
     camera_shift_angle: float = _f(0.0, "Direction of the camera shift, degrees counter-clockwise from +x.")
+    palette: Literal["task", "mono"] = _f(
+        "task",
+        "Object colours (metaworld suite): task = each task's objects in their own colours; mono = every object "
+        "and marker of every task in one light grey on the grey table, so that only shape and layout tell the "
+        "groups apart (docs/tasks.md).",
+    )
 
     def __post_init__(self) -> None:
         from .symmetry import get_group
@@ -128,6 +134,8 @@ class EnvConfig:
             raise ConfigError(f"env.action_repeat={self.action_repeat}: action repeat applies to the metaworld suite only")
         if not math.isfinite(self.success_bonus):
             raise ConfigError(f"env.success_bonus={self.success_bonus}: must be a finite number >= 0")
+        if self.palette == "mono" and self.suite != "metaworld":
+            raise ConfigError("env.palette=mono recolours Meta-World objects; it applies to the metaworld suite only")
         if self.success_bonus > 0 and self.suite != "metaworld":
             raise ConfigError(f"env.success_bonus={self.success_bonus}: the success bonus applies to the metaworld suite only")
         if self.success_bonus_once and self.success_bonus == 0:
@@ -317,10 +325,12 @@ class ClusteringConfig:
     replacement: Literal["fifo", "reservoir"] = _f("reservoir", "How a full buffer admits new observations.")
     initial_frames: int = _f(1, "k: first frames of each episode used for clustering.", min=1)
     update_every: int = _f(8, "Nu: episodes per iteration (rolled out, assigned together, then one PPO update).", min=1)
-    feature_source: Literal["own", "shared", "colors"] = _f(
-        "own",
-        "Features from each policy's own encoder, one frozen shared encoder, or a fixed colour "
-        "histogram of the frame (no network; exactly invariant to D4).",
+    feature_source: Literal["joint", "own", "shared", "colors"] = _f(
+        "joint",
+        "joint = every policy's own invariant encoder output, unit length, side by side: one learned space "
+        "for every comparison (docs/clustering.md, 'Feature sources'); own = each policy's own encoder for "
+        "its own buffer (the paper's); shared = one frozen untrained encoder; colors = a fixed colour "
+        "histogram of the frame (hand-designed, no learning; an ablation).",
     )
     max_policies: int = _f(64, "Bank size limit; when reached, the nearest policy is recalled.", min=1)
     feature_norm: Literal["buffer", "none", "l2"] = _f(
@@ -348,6 +358,21 @@ class ClusteringConfig:
         "the null distribution; max(this, ceil(1/false_split_rate) - 1) are drawn, stopped early once the "
         "decision is settled.",
         min=20,
+    )
+    merge_threshold: float | None = _f(
+        None,
+        "Healing: every merge_every assignments, a policy whose buffer lies within this W1 distance (the bank's "
+        "features and normalization) of an older policy's buffer is merged into it (its frames, episodes and "
+        "labels; its learner stops). null = never merge (docs/clustering.md, 'A bank that heals').",
+        gt=0.0,
+    )
+    merge_every: int = _f(8, "Healing: assignments between two merge checks.", min=1)
+    tie_margin: float = _f(
+        0.0,
+        "A recall between near-equal candidates: among the policies that accept O with distances within "
+        "d_min / (1 - tie_margin), the one assigned most often (the one that has trained) is chosen; 0 = the nearest.",
+        min=0.0,
+        max=0.9,
     )
     assign_at: Literal["iteration", "reset"] = _f(
         "iteration",

@@ -83,8 +83,10 @@ def test_stream_fast_builds_on_stream_cpu_by_its_base_key():
 
 
 def test_group_fast_is_quickstart_with_the_measured_overrides():
-    # docs/learning.md's per-group runs with stream_fast's settings ran `bench learn` (on quickstart) with these
-    measured = ["ppo.epochs=4", "ppo.minibatch_size=200", "network.init_log_std=0.0", "clustering.feature_source=colors",
+    # docs/learning.md's per-group runs with stream_fast's settings ran `bench learn` (on quickstart) with these,
+    # but for the clustering's feature source (colors then; the learned joint features and healing since)
+    measured = ["ppo.epochs=4", "ppo.minibatch_size=200", "network.init_log_std=0.0", "clustering.feature_source=joint",
+                "clustering.merge_threshold=1.0", "clustering.tie_margin=0.2",
                 "env.max_episode_steps=150", "ppo.target_kl=0.01", "ppo.kl_reference=update_start",
                 "clustering.assign_at=reset", "clustering.false_split_rate=1e-4", "env.success_bonus=100",
                 "env.success_bonus_once=true", "env.success_bonus_radius=0.5", "network.space_to_depth=4",

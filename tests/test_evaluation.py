@@ -27,7 +27,7 @@ from covers_dist.evaluation import (
     run_evaluation,
 )
 from covers_dist.evaluation.metrics import group_success, group_worst, held_groups
-from covers_dist.evaluation.protocol import EvalPair, pair_rows, plan_jobs
+from covers_dist.evaluation.protocol import EvalPair, pair_rows, pair_seeds, plan_jobs
 from covers_dist.runtime import evaluation as runtime_evaluation
 from covers_dist.runtime.driver import Trainer
 from covers_dist.runtime.rollout import episode_seed
@@ -55,6 +55,9 @@ TINY = [
     # is the checkpoint's; a pipelined run's checkpoint holds the in-flight update's newest weights,
     # and `covers-dist eval` may then choose another policy than the final pass did
     "runtime.pipeline=false",
+    # each policy's own encoder: at this width the joint features keep the toy groups on one policy,
+    # and these tests need two
+    "clustering.feature_source=own",
 ]
 KEYS = {f"{m}/{s}" for m in ("greedy", "stochastic") for s in ("agnostic", "oracle")}
 
@@ -384,8 +387,8 @@ def test_run_evaluation_spreads_work_and_gives_a_new_policy_fresh_weights():
     pairs = [EvalPair("reach", "e", 0, 0, "seen"), EvalPair("push", "e", 1, 0, "unseen")]
     workers = [FakeWorker() for _ in range(3)]  # more workers than pairs: the idle one gets an empty list
 
-    def choose(obs, groups):
-        assert len(groups) == len(obs["image"]) == 2
+    def choose(obs, groups):  # the pair's 2 episodes together, then each episode's own frame
+        assert len(groups) == len(obs["image"]) in (1, 2)
         return {"policy_id": 0 if groups[0] == 0 else 5, "decision": "recall" if groups[0] == 0 else "new"}
 
     fresh = lambda pid: (-1, f"w{pid}")  # noqa: E731
@@ -410,6 +413,47 @@ def test_run_evaluation_spreads_work_and_gives_a_new_policy_fresh_weights():
     assert ev["pairs"][1]["results"] == {}
     with pytest.raises(ValueError, match="episodes must be >= 1"):
         run_evaluation(LocalExecutors([FakeWorker()]), pairs, choose, {}, {}, 0, 0)
+
+
+def test_agnostic_episodes_act_with_their_own_choice_and_the_disagreement_is_counted():
+    """Each episode's own first frame picks its policy (the nearest one where its rule says
+    ``new``); the pair-level choice is recorded, with the fraction of episodes that differ."""
+    pairs = [EvalPair("reach", "e", 0, 0, "seen")]
+
+    class Worker(FakeWorker):
+        def eval_first_frames(self, items):
+            return [{"image": np.arange(len(s), dtype=float)[:, None], "proprio": np.zeros((len(s), 1))} for _, s in items]
+
+        def eval_jobs(self, jobs, weights_map):
+            return [{"success": [float(j.policy_id == 0)] * len(j.seeds), "return": [1.0] * len(j.seeds)} for j in jobs]
+
+    def choose(obs, groups):
+        if len(obs["image"]) > 1:
+            return {"policy_id": 0, "decision": "recall", "distances": {"0": 0.5, "1": 0.9}}
+        if obs["image"][0, 0] == 2:  # episode 2 alone would start a new policy; policy 1 is the nearest
+            return {"policy_id": 2, "decision": "new", "distances": {"0": 3.0, "1": 2.0}}
+        return {"policy_id": int(obs["image"][0, 0] == 3), "decision": "recall", "distances": {"0": 0.5, "1": 0.9}}
+
+    ev = run_evaluation(
+        LocalExecutors([Worker()]), pairs, choose, {0: 0}, {0: (1, "w0"), 1: (1, "w1")}, 0, 4,
+        modes=["greedy"], split="stop",
+    )
+    row = ev["pairs"][0]
+    assert row["agnostic_policy"] == 0 and row["episode_policies"] == [0, 0, 1, 1]
+    assert row["episode_choice_disagreement"] == 0.5 and ev["episode_choice_disagreement"] == 0.5
+    got = row["results"]["greedy/agnostic"]
+    assert got["policies"] == [0, 0, 1, 1] and got["success"] == 0.5 and got["n"] == 4
+    assert row["results"]["greedy/oracle"]["success"] == 1.0 and "policies" not in row["results"]["greedy/oracle"]
+    assert ev["split"] == "stop" and ev["seeds"]["reach|e"] == pair_seeds(0, pairs[0], 4, "stop")
+
+
+def test_stop_and_report_splits_have_disjoint_initial_states():
+    pair = EvalPair("reach", "r", 0, 1, "seen")
+    stop, report = pair_seeds(3, pair, 64, "stop"), pair_seeds(3, pair, 64, "report")
+    assert not set(stop) & set(report) and len(set(stop)) == 64
+    assert report == [eval_seed(3, 0, 1, k) for k in range(64)]  # report seeds are the seeds of before
+    with pytest.raises(ValueError, match="split must be one of"):
+        eval_seed(3, 0, 1, 0, "train")
 
 
 def timeless(record):
@@ -472,9 +516,15 @@ def test_training_writes_passes_every_two_iterations_and_at_the_end(runs):
             assert set(r["results"]) == keys
             for key, res in r["results"].items():
                 assert res["episodes"] == 2 and 0.0 <= res["success"] <= 1.0 and np.isfinite(res["return"])
-                assert res["policy_id"] == r["agnostic_policy" if key.endswith("agnostic") else "oracle_policy"]
-            jobs += 2 * len({r["agnostic_policy"], r["oracle_policy"]} - {None})
-        assert ev["eval_episodes"] == 2 * jobs
+                if key.endswith("agnostic"):  # each episode acted by its own choice
+                    assert res.get("policies", [res["policy_id"]] * 2) == r["episode_policies"]
+                else:
+                    assert res["policy_id"] == r["oracle_policy"]
+            # episodes run per mode: each (policy, episode) once, whichever selections chose it
+            runs = {(q, i) for i, q in enumerate(r["episode_policies"])}
+            runs |= {(r["oracle_policy"], i) for i in range(2)} if r["oracle_policy"] is not None else set()
+            jobs += 2 * len(runs)
+        assert ev["eval_episodes"] == jobs
     # every (pair, episode) starts from its own state: 16 pairs x 2 episodes, counted by fingerprint
     for ev in passes:
         assert ev["distinct_initial_states"] == 16 * 2
@@ -551,7 +601,8 @@ def test_eval_command_is_read_only_deterministic_and_matches_the_training_pass(r
     run = tmp_path / "run"
     shutil.copytree(on, run)
     before = snapshot(run)
-    first = eval_json(capsys, run, "--tasks", "reach", "--episodes", "2")  # the training passes' episodes
+    # the training passes' episodes: their split and count
+    first = eval_json(capsys, run, "--tasks", "reach", "--episodes", "2", "--split", "stop")
     assert snapshot(run) == before  # --no-write: nothing at all
     assert first["pass"]["iteration"] == 3 and first["pass"]["source"] == "checkpoint ckpt-000003"
     assert first["metrics"]["passes"] == 2  # the training's pass at iteration 2, then this one
@@ -566,8 +617,15 @@ def test_eval_command_is_read_only_deterministic_and_matches_the_training_pass(r
             t["oracle_policy"],
         )
         assert r["agnostic_distance"] == pytest.approx(t["agnostic_distance"], rel=1e-5)
+    assert first["pass"]["split"] == "stop" and first["pass"]["seeds"] == {
+        k: v for k, v in lines(on / "eval.jsonl")[-1]["seeds"].items() if k.startswith("reach|")
+    }
+    # the report split (the default): initial states the training passes never saw
+    report = eval_json(capsys, run, "--tasks", "reach", "--episodes", "2")["pass"]
+    assert report["split"] == "report"
+    assert not {s for v in report["seeds"].values() for s in v} & {s for v in first["pass"]["seeds"].values() for s in v}
     # again, written this time: the same pass, appended to eval.jsonl and to nothing else
-    assert main(["eval", str(run), "--tasks", "reach", "--episodes", "2"]) == 0
+    assert main(["eval", str(run), "--tasks", "reach", "--episodes", "2", "--split", "stop"]) == 0
     out = capsys.readouterr().out
     assert "| reach |" in out and "average success" in out and "appended to" in out
     after = snapshot(run)
@@ -703,7 +761,9 @@ def test_background_pass_still_running_at_the_end_is_followed_by_a_final_pass(tm
     assert [p["iteration"] for p in lines(tmp_path / "eval.jsonl")] == [1, 2]
     # each pass compares with the policies it had weights for when it started
     published = json.loads((tmp_path / "checkpoints" / "ckpt-000002" / "driver.json").read_text())["policies"]
-    assert spied == [[0]] * 8 + [published] * 8
+    # (per pass: every pair's episodes together, then each episode's own frames)
+    per_pass = len(spied) // 2
+    assert per_pass > 8 and spied == [[0]] * per_pass + [published] * per_pass
     rows = lines(tmp_path / "metrics.jsonl")
     assert rows[-1]["iteration"] == 2 and "eval/success/reach" in rows[-1]
 

@@ -10,10 +10,16 @@ learners as on Ray, in one process) on each stream for each decision rule
 * the fraction of episodes acted by a policy other than the one they were assigned to.
 
 Streams: ``toy-one`` (toy reach alone under D4), ``toy-multi`` (reach, push, avoid),
-``metaworld-one`` (Goal Reach alone under D4, 64 px), ``metaworld-multi`` (the four groups).
-Each run trains for ``--steps`` env steps with ``clustering.update_every`` = ``--batch``
-episodes per assignment, on top of the stream's config (the smoke config for toy streams, the
-quickstart config for Meta-World ones; ``--config`` replaces it, ``--set`` adds overrides).
+``metaworld-one`` (Goal Reach alone under D4, 64 px), ``metaworld-multi`` (the four groups),
+``metaworld-mono`` (the four groups with ``env.palette: mono``: every object in one grey under a
+flat light, so a colour histogram sees one picture and only learned features of shape and layout
+can tell the groups apart). Each run trains for ``--steps`` env steps with
+``clustering.update_every`` = ``--batch`` episodes per assignment, on top of the stream's config
+(the smoke config for toy streams, the quickstart config for Meta-World ones; ``--config``
+replaces it, ``--set`` adds overrides). Without ``--rules`` / ``--assign-at`` / ``--batch`` a
+given ``--config`` keeps its own rule, moment and ``update_every``; without ``--steps`` a toy
+stream runs 8,000 env steps and a Meta-World stream 16 of the config's segments
+(``16 * env.episodes_per_task * env.max_episode_steps``: every group visited about 4 times).
 """
 
 from __future__ import annotations
@@ -33,7 +39,35 @@ STREAMS: dict[str, tuple[str, list[str]]] = {
         "configs/quickstart.yaml",
         ["env.tasks=[reach-v3,button-press-topdown-v3,drawer-close-v3,plate-slide-v3]"],
     ),
+    "metaworld-mono": (
+        "configs/quickstart.yaml",
+        ["env.tasks=[reach-v3,button-press-topdown-v3,drawer-close-v3,plate-slide-v3]", "env.palette=mono"],
+    ),
 }
+TOY_STEPS = 8000
+META_WORLD_SEGMENTS = 16
+DEFAULT_BATCH = 4
+
+
+def settings(stream: str, args: Any) -> tuple[list[str], list[str], int, int]:
+    """(rules, assignment moments, env steps, batch) of ``stream`` for the parsed ``args`` (module doc)."""
+    from ..config import load_config
+
+    base, overrides = STREAMS[stream]
+    cfg = load_config(args.config or base, overrides + list(args.overrides))
+    given = args.config is not None
+
+    def pick(value: str | None, own: str, both: str) -> list[str]:
+        chosen = value if value is not None else (own if given else both)
+        return [v.strip() for v in chosen.split(",") if v.strip()]
+
+    rules = pick(args.rules, cfg.clustering.rule, "threshold,calibrated")
+    modes = pick(args.assign_at, cfg.clustering.assign_at, "iteration,reset")
+    batch = args.batch or (cfg.clustering.update_every if given else DEFAULT_BATCH)
+    steps = args.steps or (
+        TOY_STEPS if cfg.env.suite == "toy" else META_WORLD_SEGMENTS * cfg.env.episodes_per_task * cfg.env.max_episode_steps
+    )
+    return rules, modes, steps, batch
 
 
 def run_stream(
@@ -72,6 +106,7 @@ def run_stream(
                 "runtime.log_every_s=60",
                 f"seed={seed}",
                 "eval.every_iterations=0",
+                "eval.stop_at=null",
             ]
             + list(extra),
         )
@@ -92,6 +127,8 @@ def run_stream(
         "rule": rule,
         "assign_at": assign_at,
         "seed": seed,
+        "feature_source": cfg.clustering.feature_source,
+        "palette": cfg.env.palette,
         "env_steps": int(row.get("env_steps", 0)),
         "assignments": assignments,
         "policies": policies,
@@ -105,26 +142,28 @@ def run_stream(
 
 
 def run(args: Any) -> int:
-    rules = [r.strip() for r in args.rules.split(",") if r.strip()]
-    modes = [m.strip() for m in args.assign_at.split(",") if m.strip()]
     streams = [s.strip() for s in args.streams.split(",") if s.strip()]
-    bad = [s for s in streams if s not in STREAMS] + [r for r in rules if r not in ("threshold", "calibrated")]
-    bad += [m for m in modes if m not in ("iteration", "reset")]
-    if bad or not rules or not modes or not streams:
-        raise SystemExit(
-            f"covers-dist bench assign --stream: unknown or empty choice(s) {bad}; streams: {list(STREAMS)}, "
-            "rules: threshold,calibrated, assign-at: iteration,reset"
-        )
-    if args.steps < 1 or args.batch < 1:
+    unknown = [s for s in streams if s not in STREAMS]
+    if unknown or not streams:
+        raise SystemExit(f"covers-dist bench assign --stream: unknown or empty stream(s) {unknown}; streams: {list(STREAMS)}")
+    if args.steps < 0 or args.batch < 0:
         raise SystemExit("covers-dist bench assign --stream: --steps and --batch must be >= 1")
+    plan = {stream: settings(stream, args) for stream in streams}
+    for stream, (rules, modes, _, _) in plan.items():
+        bad = [r for r in rules if r not in ("threshold", "calibrated")] + [m for m in modes if m not in ("iteration", "reset")]
+        if bad or not rules or not modes:
+            raise SystemExit(
+                f"covers-dist bench assign --stream: unknown or empty choice(s) {bad}; "
+                "rules: threshold,calibrated, assign-at: iteration,reset"
+            )
     rows = []
-    total = len(streams) * len(rules) * len(modes)
-    for stream in streams:
+    total = sum(len(r) * len(m) for r, m, _, _ in plan.values())
+    for stream, (rules, modes, steps, batch) in plan.items():
         for rule in rules:
             for mode in modes:
                 if not args.json:
                     print(f"[{len(rows) + 1}/{total}] {stream} rule={rule} assign_at={mode} ...", flush=True)
-                row = run_stream(stream, rule, mode, args.steps, args.batch, args.seed, args.overrides, args.config)
+                row = run_stream(stream, rule, mode, steps, batch, args.seed, args.overrides, args.config)
                 rows.append(row)
                 if args.json:
                     print(json.dumps(row), flush=True)

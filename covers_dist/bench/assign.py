@@ -89,12 +89,25 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="instead of latency: false splits, ARI and wrong-policy episodes on streams with training encoders",
     )
     p.add_argument(
-        "--streams", default="toy-one,toy-multi", help="--stream: toy-one,toy-multi,metaworld-one,metaworld-multi"
+        "--streams",
+        default="toy-one,toy-multi",
+        help="--stream: toy-one,toy-multi,metaworld-one,metaworld-multi,metaworld-mono",
     )
-    p.add_argument("--rules", default="threshold,calibrated", help="--stream: decision rules (default: both)")
-    p.add_argument("--assign-at", default="iteration,reset", help="--stream: assignment moments (default: both)")
-    p.add_argument("--steps", type=int, default=8000, help="--stream: env steps per run (default: 8000)")
-    p.add_argument("--batch", type=int, default=4, help="--stream: episodes per assignment (default: 4)")
+    p.add_argument(
+        "--rules", default=None, help="--stream: decision rules (default: the --config's own, else threshold,calibrated)"
+    )
+    p.add_argument(
+        "--assign-at", default=None, help="--stream: assignment moments (default: the --config's own, else iteration,reset)"
+    )
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=0,
+        help="--stream: env steps per run (default: 8000 on toy streams; 16 segments of the config on Meta-World ones)",
+    )
+    p.add_argument(
+        "--batch", type=int, default=0, help="--stream: episodes per assignment (default: the --config's update_every, else 4)"
+    )
     add_config_args(p)
     p.set_defaults(func=run)
 

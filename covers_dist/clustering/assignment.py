@@ -99,6 +99,11 @@ class AssignmentRecord:
     threshold; never a policy that was not examined) and ``policies`` (``{"<id>": {"tested",
     "draws", "exceedances", "p_value", "decided_by", "accepted"}}``, see
     :class:`~covers_dist.clustering.bank.Calibration`).
+
+    ``merges``: the merges the bank made just before this assignment (``{"retired", "into",
+    "distance", "at_assignment", "episodes", "assignments", "time_unix"}`` each,
+    :meth:`~covers_dist.clustering.bank.PolicyBank.heal`); None (and left out of :meth:`to_dict`)
+    when there were none.
     """
 
     index: int
@@ -117,6 +122,7 @@ class AssignmentRecord:
     nearest_distance: float | None = field(default=None)
     p_values: dict[int, float | None] | None = None
     calibration: dict[str, Any] | None = None
+    merges: list[dict[str, Any]] | None = None
 
     def __post_init__(self) -> None:
         if self.decision not in DECISIONS:
@@ -145,6 +151,8 @@ class AssignmentRecord:
             d["p_values"] = {str(k): (None if v is None else float(v)) for k, v in sorted(self.p_values.items())}
         if self.calibration is None:
             del d["calibration"]
+        if self.merges is None:
+            del d["merges"]
         return d
 
     @classmethod

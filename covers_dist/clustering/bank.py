@@ -41,6 +41,9 @@ MODES: tuple[str, ...] = ("distance", "ground_truth")
 #: meaningful null distribution and the threshold decides for that policy.
 MIN_CALIBRATION_BUFFER = 8
 
+#: A policy is considered for a merge (:meth:`PolicyBank.heal`) once its buffer holds this many frames.
+MIN_MERGE_FRAMES = 16
+
 _CALIBRATION_KEY = 0xCA1B  # spawn key of the calibration generator (buffers use entropy [seed, policy id])
 
 
@@ -99,6 +102,9 @@ class PolicyBank:
         rule: str = "threshold",
         false_split_rate: float = 0.001,
         calibration_samples: int = 200,
+        merge_threshold: float | None = None,
+        merge_every: int = 8,
+        tie_margin: float = 0.0,
     ) -> None:
         get_distance(metric)  # validates the name
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not threshold > 0:
@@ -116,6 +122,12 @@ class PolicyBank:
             raise ValueError(f"false_split_rate must be a number in (0, 0.5), got {r!r}")
         if feature_fn is not None and not callable(feature_fn):
             raise TypeError(f"feature_fn must be callable, got {type(feature_fn).__name__}")
+        if merge_threshold is not None and (
+            isinstance(merge_threshold, bool) or not isinstance(merge_threshold, (int, float)) or not merge_threshold > 0
+        ):
+            raise ValueError(f"merge_threshold must be a number > 0 or None, got {merge_threshold!r}")
+        if isinstance(tie_margin, bool) or not isinstance(tie_margin, (int, float)) or not 0.0 <= tie_margin < 1.0:
+            raise ValueError(f"tie_margin must be a number in [0, 1), got {tie_margin!r}")
         self.feature_fn = feature_fn
         self.metric = metric
         self.threshold = float(threshold)
@@ -130,7 +142,12 @@ class PolicyBank:
         self.false_split_rate = float(false_split_rate)
         self.calibration_samples = check_int("calibration_samples", calibration_samples, 20)
         self.calibration_rng = calibration_generator(self.seed)
+        self.merge_threshold = None if merge_threshold is None else float(merge_threshold)
+        self.merge_every = check_int("merge_every", merge_every, 1)
+        self.tie_margin = float(tie_margin)
         self.entries: dict[int, PolicyEntry] = {}
+        self.retired: dict[int, PolicyEntry] = {}  # policies merged into another (never chosen again)
+        self.merges: list[dict[str, Any]] = []  # one record per merge, in order
         self.history: list[AssignmentRecord] = []
         self.current_policy_id: int | None = None
         self.episode_policy: dict[int, int] = {}  # episode index -> policy id (assigned episodes)
@@ -163,6 +180,9 @@ class PolicyBank:
             rule=c.rule,
             false_split_rate=c.false_split_rate,
             calibration_samples=c.calibration_samples,
+            merge_threshold=c.merge_threshold,
+            merge_every=c.merge_every,
+            tie_margin=c.tie_margin,
         )
 
     # ---- queries --------------------------------------------------------------------------------
@@ -247,9 +267,10 @@ class PolicyBank:
         observed = {pid: distance(*normalize_pair(f_o, f_b, norm)) for pid, f_o, f_b in pairs}
         cal = Calibration(distances=observed, p_values={}, accepted={}, draws={}, max_draws=full)
         decided = False
+        reach = math.inf  # after the first acceptance: farther policies within the tie margin are tested too
         for pid, f_o, f_b in sorted(pairs, key=lambda t: (observed[t[0]], t[0])):
             d_obs, m, n = observed[pid], len(f_o), len(f_b)
-            if decided:  # a nearer policy accepted: this one cannot change the decision
+            if decided and d_obs > reach:  # a nearer policy accepted: this one cannot change the decision
                 test = {"tested": False, "draws": 0, "exceedances": None, "p_value": None,
                         "decided_by": None, "accepted": None}
             elif n < MIN_CALIBRATION_BUFFER or not splits_suffice(m, n, full):
@@ -262,7 +283,8 @@ class PolicyBank:
             cal.tests[pid] = test
             cal.p_values[pid], cal.draws[pid] = test["p_value"], test["draws"]
             cal.accepted[pid] = bool(test["accepted"])
-            decided = decided or cal.accepted[pid]
+            if cal.accepted[pid] and not decided:
+                decided, reach = True, d_obs / (1.0 - self.tie_margin) if self.tie_margin else d_obs
         return cal
 
     # ---- the assignment step ----------------------------------------------------------------------
@@ -329,11 +351,15 @@ class PolicyBank:
             distances, p_values = cal.distances, cal.p_values
             calibration = cal.record_info(self.false_split_rate, self.calibration_samples)
             pid, decision = decide_calibrated(distances, cal.accepted, self.max_policies, len(self.entries))
+            if decision == "recall":
+                pid = self._prefer_trained(pid, distances, cal.accepted)
         else:
             distances = self.distances(obs, policies)
             pid, decision = decide(distances, self.threshold, self.max_policies, len(self.entries))
+            if decision == "recall":
+                pid = self._prefer_trained(pid, distances, {p: d <= self.threshold for p, d in distances.items()})
         if pid is None:
-            pid = 0 if not self.entries else max(self.entries) + 1
+            pid = self.next_policy_id()
         record = AssignmentRecord(
             index=len(self.history),
             policy_id=int(pid),
@@ -382,9 +408,13 @@ class PolicyBank:
     ) -> AssignmentRecord:
         """Assign the episodes behind ``obs`` (their first-k frames) to a policy; see the module doc.
 
-        The chosen policy becomes :attr:`current_policy_id` and its buffer takes ``obs``.
+        The chosen policy becomes :attr:`current_policy_id` and its buffer takes ``obs``. Every
+        ``merge_every`` assignments (with ``merge_threshold`` set) the bank first heals
+        (:meth:`heal`); the merges it made are in the record's ``merges``.
         """
+        merges = self.heal() if self._heal_due() else []
         record, t0 = self._plan(obs, episode_indices, group_ids)
+        record.merges = merges or None
         pid = record.policy_id
         if record.new:
             seq = np.random.SeedSequence([self.seed, pid])
@@ -410,6 +440,86 @@ class PolicyBank:
         self.current_policy_id = pid
         record.wall_time_ms = (time.perf_counter() - t0) * 1e3
         self.history.append(record)
+        return record
+
+    # ---- healing ----------------------------------------------------------------------------------
+    def next_policy_id(self) -> int:
+        """The id a new policy gets: one past every id the bank has used (retired ones included)."""
+        used = list(self.entries) + list(self.retired)
+        return max(used) + 1 if used else 0
+
+    def _prefer_trained(self, nearest: int, distances: dict[int, float], accepted: dict[int, bool]) -> int:
+        """Among the policies that accept and lie within ``tie_margin`` of ``nearest``'s distance
+        (``d <= d_nearest / (1 - tie_margin)``), the one that has been assigned most often (ties:
+        the nearer, then the lower id)."""
+        if not self.tie_margin:
+            return nearest
+        reach = distances[nearest] / (1.0 - self.tie_margin)
+        near = [p for p, d in distances.items() if accepted.get(p) and d <= reach and p in self.entries]
+        return max(near, key=lambda p: (self.entries[p].assignments, -distances[p], -p), default=nearest)
+
+    def _heal_due(self) -> bool:
+        return (
+            self.merge_threshold is not None
+            and self.mode == "distance"
+            and len(self.entries) >= 2
+            and len(self.history) % self.merge_every == 0
+        )
+
+    def heal(self) -> list[dict[str, Any]]:
+        """Merge every policy whose buffer is indistinguishable from an older policy's.
+
+        Youngest first, policy ``j`` with at least :data:`MIN_MERGE_FRAMES` buffered frames is
+        compared, as a batch, with the buffer of every older (lower-id) policy ``i``: ``d(B_j, B_i)``
+        with the bank's metric, features and normalization (``B_i``'s spread). The nearest ``i``
+        with ``d <= merge_threshold`` absorbs ``j`` (:meth:`merge`); the scan starts again until
+        no pair merges. Returns the merge records (also appended to :attr:`merges`)."""
+        out: list[dict[str, Any]] = []
+        if self.merge_threshold is None or self.mode != "distance":
+            return out
+        merged = True
+        while merged and len(self.entries) >= 2:
+            merged = False
+            for j in sorted(self.entries, reverse=True):
+                older = [i for i in self.policy_ids if i < j]
+                if not older or len(self.entries[j].buffer) < MIN_MERGE_FRAMES:
+                    continue
+                d = self.distances(self.entries[j].buffer.observations(), policies=older)
+                i = min(sorted(d), key=lambda p: d[p])
+                if d[i] <= self.merge_threshold:
+                    out.append(self.merge(j, i, distance=d[i]))
+                    merged = True
+                    break
+        return out
+
+    def merge(self, retired: int, into: int, distance: float | None = None) -> dict[str, Any]:
+        """Retire policy ``retired`` into ``into``: its buffered frames join ``B_into`` (by the
+        buffer's replacement rule), its episodes and labels become ``into``'s, and it is never
+        compared or chosen again (kept in :attr:`retired`; its id is never reused). Its learner's
+        weights are not blended: ``into`` keeps its own, and the caller stops training ``retired``."""
+        if retired == into or retired not in self.entries or into not in self.entries:
+            raise ValueError(f"cannot merge policy {retired!r} into {into!r}; the bank holds {self.policy_ids}")
+        gone, keep = self.entries.pop(retired), self.entries[into]
+        if len(gone.buffer):
+            keep.buffer.add(gone.buffer.observations())
+        keep.episodes = sorted(keep.episodes + gone.episodes)
+        keep.group_counts.update(gone.group_counts)
+        self.episode_policy.update((e, into) for e in gone.episodes)
+        self.labels = {e: ((into if p == retired else p), g) for e, (p, g) in self.labels.items()}
+        self.group_policy = {g: (into if p == retired else p) for g, p in self.group_policy.items()}
+        if self.current_policy_id == retired:
+            self.current_policy_id = into
+        self.retired[retired] = gone
+        record = {
+            "retired": int(retired),
+            "into": int(into),
+            "distance": None if distance is None else float(distance),
+            "at_assignment": len(self.history),
+            "episodes": len(gone.episodes),
+            "assignments": gone.assignments,
+            "time_unix": time.time(),
+        }
+        self.merges.append(record)
         return record
 
     def record_episode_stats(
@@ -473,7 +583,18 @@ class PolicyBank:
                  "calibration_samples": self.calibration_samples}
                 if self.rule == "calibrated" else {}
             ),
+            **(
+                {"merge_threshold": self.merge_threshold, "merge_every": self.merge_every}
+                if self.merge_threshold is not None else {}
+            ),
+            "tie_margin": self.tie_margin,
             "num_policies": len(self.entries),
+            "policies_created": len(self.entries) + len(self.retired),
+            "retired": [
+                {**self.retired[p].summary(), "merged_into": m["into"]}
+                for m in self.merges for p in [m["retired"]] if p in self.retired
+            ],
+            "merges": [dict(m) for m in self.merges],
             "current_policy_id": self.current_policy_id,
             "assignments": len(self.history),
             "policies": [self.entries[p].summary() for p in self.policy_ids],

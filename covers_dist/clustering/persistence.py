@@ -3,9 +3,9 @@
 A checkpoint directory holds two files:
 
 * ``buffers-<token>.npz``: every buffer's frames (``p<id>_image`` uint8, ``p<id>_proprio``
-  float32), written to a temporary file, flushed, then renamed into place;
-* ``bank.json``: everything else (settings, entries, buffer bookkeeping and RNG states, the full
-  assignment history, the episode labels), plus the format name and version and the name and
+  float32; ``r<id>_...`` for retired policies), written to a temporary file, flushed, then renamed into place;
+* ``bank.json``: everything else (settings, entries, retired entries and merges, buffer
+  bookkeeping and RNG states, the full assignment history, the episode labels), plus the format name and version and the name and
   SHA-256 of the ``.npz`` it belongs to. It is written last, the same way (temporary file, fsync,
   ``os.replace``): its rename is the commit point.
 
@@ -43,6 +43,8 @@ STATE_FILE = "bank.json"
 _SETTINGS = ("metric", "threshold", "buffer_size", "replacement", "max_policies", "initial_frames", "feature_norm")
 #: Decision-rule settings, with the values that banks saved before they existed are read as.
 _RULE_SETTINGS: dict[str, Any] = {"rule": "threshold", "false_split_rate": 0.001, "calibration_samples": 200}
+#: Healing settings, with the values of banks saved before healing existed
+_HEAL_SETTINGS: dict[str, Any] = {"merge_threshold": None, "merge_every": 8, "tie_margin": 0.0}
 
 
 class CheckpointError(ValueError):
@@ -79,36 +81,41 @@ def _write_atomic(path: Path, write: Any) -> None:
             tmp.unlink()
 
 
+def _entry_state(e: PolicyEntry, prefix: str, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    pid = e.policy_id
+    if len(e.buffer):
+        obs = e.buffer.observations()
+        arrays[f"{prefix}{pid}_image"], arrays[f"{prefix}{pid}_proprio"] = obs["image"], obs["proprio"]
+    return {
+        "policy_id": pid,
+        "buffer": e.buffer.state(),
+        "created_at_episode": e.created_at_episode,
+        "created_at_assignment": e.created_at_assignment,
+        "created_at_time": e.created_at_time,
+        "episodes": e.episodes,
+        "assignments": e.assignments,
+        "group_counts": [[g, c] for g, c in sorted(e.group_counts.items())],
+        "episodes_reported": e.episodes_reported,
+        "last_success": e.last_success,
+        "last_return": e.last_return,
+    }
+
+
 def bank_state(bank: PolicyBank) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """The bank as (JSON-safe state, arrays)."""
     arrays: dict[str, np.ndarray] = {}
-    entries = []
-    for pid in bank.policy_ids:
-        e = bank.entries[pid]
-        if len(e.buffer):
-            obs = e.buffer.observations()
-            arrays[f"p{pid}_image"], arrays[f"p{pid}_proprio"] = obs["image"], obs["proprio"]
-        entries.append(
-            {
-                "policy_id": pid,
-                "buffer": e.buffer.state(),
-                "created_at_episode": e.created_at_episode,
-                "created_at_assignment": e.created_at_assignment,
-                "created_at_time": e.created_at_time,
-                "episodes": e.episodes,
-                "assignments": e.assignments,
-                "group_counts": [[g, c] for g, c in sorted(e.group_counts.items())],
-                "episodes_reported": e.episodes_reported,
-                "last_success": e.last_success,
-                "last_return": e.last_return,
-            }
-        )
+    entries = [_entry_state(bank.entries[pid], "p", arrays) for pid in bank.policy_ids]
+    retired = [_entry_state(bank.retired[pid], "r", arrays) for pid in sorted(bank.retired)]
     state = {
-        "settings": {k: getattr(bank, k) for k in _SETTINGS + ("mode", "seed") + tuple(_RULE_SETTINGS)},
+        "settings": {
+            k: getattr(bank, k) for k in _SETTINGS + ("mode", "seed") + tuple(_RULE_SETTINGS) + tuple(_HEAL_SETTINGS)
+        },
         "calibration_rng": bank.calibration_rng.bit_generator.state,
         "current_policy_id": bank.current_policy_id,
         "next_episode": bank.next_episode,
         "entries": entries,
+        "retired": retired,
+        "merges": bank.merges,
         "history": [r.to_dict() for r in bank.history],
         "labels": [[e, p, g] for e, (p, g) in sorted(bank.labels.items())],
         "group_policy": [[g, p] for g, p in sorted(bank.group_policy.items())],
@@ -208,31 +215,15 @@ def _rebuild(state: dict[str, Any], arrays: dict[str, np.ndarray], feature_fn: A
                 if settings[k] != getattr(expected, k)]
         if diff:
             raise CheckpointError("bank checkpoint does not match the config: " + "; ".join(diff))
-    bank = PolicyBank(feature_fn, **settings)
+    bank = PolicyBank(feature_fn, **{**_HEAL_SETTINGS, **settings})
     for e in state["entries"]:
-        pid = int(e["policy_id"])
-        size = int(e["buffer"]["size"])
-        image = arrays.get(f"p{pid}_image", np.zeros((0, 1, 1, 3), np.uint8))
-        proprio = arrays.get(f"p{pid}_proprio", np.zeros((0, 1), np.float32))
-        if image.dtype != np.uint8 or proprio.dtype != np.float32 or image.shape[0] != size:
-            raise CheckpointError(
-                f"buffers of policy {pid}: arrays {image.dtype}{image.shape} / {proprio.dtype}{proprio.shape} "
-                f"do not match the saved size {size}"
-            )
-        bank.entries[pid] = PolicyEntry(
-            policy_id=pid,
-            buffer=ObservationBuffer.from_state(e["buffer"], image, proprio),
-            created_at_episode=int(e["created_at_episode"]),
-            created_at_assignment=int(e["created_at_assignment"]),
-            created_at_time=float(e["created_at_time"]),
-            episodes=[int(x) for x in e["episodes"]],
-            assignments=int(e["assignments"]),
-            group_counts=Counter({int(g): int(c) for g, c in e["group_counts"]}),
-            episodes_reported=int(e["episodes_reported"]),
-            last_success=e["last_success"],
-            last_return=e["last_return"],
-        )
-        bank.episode_policy.update((x, pid) for x in bank.entries[pid].episodes)
+        entry = _entry(e, "p", arrays)
+        bank.entries[entry.policy_id] = entry
+        bank.episode_policy.update((x, entry.policy_id) for x in entry.episodes)
+    for e in state.get("retired", []):  # absent in banks saved before healing
+        entry = _entry(e, "r", arrays)
+        bank.retired[entry.policy_id] = entry
+    bank.merges = [dict(m) for m in state.get("merges", [])]
     bank.current_policy_id = state["current_policy_id"]
     if bank.current_policy_id is not None and bank.current_policy_id not in bank.entries:
         raise CheckpointError(f"current_policy_id {bank.current_policy_id} is not in the saved bank")
@@ -243,3 +234,28 @@ def _rebuild(state: dict[str, Any], arrays: dict[str, np.ndarray], feature_fn: A
     if state.get("calibration_rng") is not None:  # absent in banks saved before the calibrated rule
         bank.calibration_rng.bit_generator.state = state["calibration_rng"]
     return bank
+
+
+def _entry(e: dict[str, Any], prefix: str, arrays: dict[str, np.ndarray]) -> PolicyEntry:
+    pid = int(e["policy_id"])
+    size = int(e["buffer"]["size"])
+    image = arrays.get(f"{prefix}{pid}_image", np.zeros((0, 1, 1, 3), np.uint8))
+    proprio = arrays.get(f"{prefix}{pid}_proprio", np.zeros((0, 1), np.float32))
+    if image.dtype != np.uint8 or proprio.dtype != np.float32 or image.shape[0] != size:
+        raise CheckpointError(
+            f"buffers of policy {pid}: arrays {image.dtype}{image.shape} / {proprio.dtype}{proprio.shape} "
+            f"do not match the saved size {size}"
+        )
+    return PolicyEntry(
+        policy_id=pid,
+        buffer=ObservationBuffer.from_state(e["buffer"], image, proprio),
+        created_at_episode=int(e["created_at_episode"]),
+        created_at_assignment=int(e["created_at_assignment"]),
+        created_at_time=float(e["created_at_time"]),
+        episodes=[int(x) for x in e["episodes"]],
+        assignments=int(e["assignments"]),
+        group_counts=Counter({int(g): int(c) for g, c in e["group_counts"]}),
+        episodes_reported=int(e["episodes_reported"]),
+        last_success=e["last_success"],
+        last_return=e["last_return"],
+    )

@@ -3,9 +3,11 @@
 Loads the newest valid checkpoint read-only, and for every base task x every element of the
 run's group (seen, unseen and held-out pairs marked) runs ``--episodes`` (default 8) evaluation
 episodes per chosen policy and mode, each from its own initial state (a distinct seed per
-(group, g, episode)): the policy picked task-agnostically by the bank's own
-assignment rule on the episodes' first frames (a what-if: the bank does not change) and the
-oracle policy (the one that trained on the pair's group); greedy and stochastic actions. The pass
+(group, g, episode), from the ``report`` split of initial states, which the passes during
+training, the ones that decide a run's stop, never use; ``--split stop`` replays those): the
+policy each episode's own first frames pick task-agnostically by the bank's own assignment rule
+(a what-if: the bank does not change; the pair-level choice and how often the two differ are
+recorded) and the oracle policy (the one that trained on the pair's group); greedy and stochastic actions. The pass
 is appended to ``RUN_DIR/eval.jsonl`` (never to the checkpoints); the per-pair table and the
 continual-learning metrics are printed. Serial in this process by default; ``--workers N`` runs
 the episodes on N Ray actors of a local, loopback-only Ray instance.
@@ -35,6 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tasks", help="comma-separated base tasks to evaluate (default: every task of the run)")
     p.add_argument("--modes", help="comma-separated: greedy,stochastic (default: the run's eval.modes)")
     p.add_argument("--selections", help="comma-separated: agnostic,oracle (default: the run's eval.selections)")
+    p.add_argument("--split", choices=("report", "stop"), default="report",
+                   help="initial states: report (default; never seen by the training passes) or stop (the training passes')")  # fmt: skip
     p.add_argument("--workers", type=int, default=0, help="Ray evaluation actors (default 0: serial, in this process)")
     p.add_argument("--no-write", action="store_true", help="print only; do not append to RUN_DIR/eval.jsonl")
     p.add_argument("--json", action="store_true", help="print the pass and its metrics as JSON")
@@ -68,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
             modes=_csv(args.modes, "modes"),
             selections=_csv(args.selections, "selections"),
             workers=args.workers,
+            split=args.split,
             write=not args.no_write,
             log=lambda m: print(m, file=sys.stderr),
         )

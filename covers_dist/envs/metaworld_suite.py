@@ -43,6 +43,8 @@ from .layout import ObsLayout
 from .metaworld_tasks import (
     TASKS,
     MetaWorldTaskSpec,
+    PALETTES,
+    apply_palette,
     apply_task_colors,
     metaworld_env_class,
     register_task,
@@ -137,7 +139,9 @@ class MetaWorldTask(gym.Env):
     pay it only on the episode's first successful step. ``success_bonus_radius``: pay it only where
     the task's distance is within this fraction of its success radius (``info["target_ratio"] <=
     success_bonus_radius``); 1, the default, pays it on every success, a smaller value only on steps
-    that go past the edge of success into it.
+    that go past the edge of success into it. ``palette``: ``task`` (each task's own object
+    colours) or ``mono`` (every object and marker of every task in one grey,
+    :func:`~covers_dist.envs.metaworld_tasks.apply_palette`).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 80}
@@ -157,6 +161,7 @@ class MetaWorldTask(gym.Env):
         success_bonus: float = 0.0,
         success_bonus_once: bool = False,
         success_bonus_radius: float = 1.0,
+        palette: str = "task",
     ) -> None:
         if task not in TASKS:
             raise ValueError(f"unknown Meta-World task {task!r}; expected one of {list(TASKS)}")
@@ -187,6 +192,8 @@ class MetaWorldTask(gym.Env):
             raise ValueError(f"render_backend must be one of {list(RENDER_BACKENDS)}, got {render_backend!r}")
         if not (isinstance(camera_shift, (int, float)) and math.isfinite(camera_shift) and camera_shift >= 0):
             raise ValueError(f"camera_shift must be a finite distance >= 0 (metres), got {camera_shift!r}")
+        if palette not in PALETTES:
+            raise ValueError(f"palette must be one of {list(PALETTES)}, got {palette!r}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         if not isinstance(observable, bool):
@@ -224,6 +231,8 @@ class MetaWorldTask(gym.Env):
             _check_goal_site(self._mw, self.spec_entry)
         apply_task_colors(model, self.spec_entry)
         robot, table = robot_bodies(model), table_geoms(model)
+        self.palette = palette
+        apply_palette(model, palette, table, robot)
         angle = math.radians(camera_shift_angle)
         centre = (
             SYMMETRY_CENTRE[0] + camera_shift * math.cos(angle),
@@ -480,6 +489,7 @@ def make_metaworld_task(
         success_bonus=float(getattr(env_cfg, "success_bonus", 0.0)),
         success_bonus_once=bool(getattr(env_cfg, "success_bonus_once", False)),
         success_bonus_radius=float(getattr(env_cfg, "success_bonus_radius", 1.0)),
+        palette=str(getattr(env_cfg, "palette", "task")),
     )
 
 

@@ -25,6 +25,9 @@ __all__ = [
     "robot_bodies",
     "table_geoms",
     "apply_task_colors",
+    "apply_palette",
+    "PALETTES",
+    "MONO_COLOR",
     "SUCCESS_STATE_KEYS",
 ]
 
@@ -169,3 +172,59 @@ def apply_task_colors(model: Any, spec: MetaWorldTaskSpec) -> None:
         if sid < 0:
             raise ValueError(f"task {spec.name}: no site named {name!r} to hide")
         model.site_rgba[sid, 3] = 0.0
+
+
+#: Colour schemes of the suite (``env.palette``): ``task`` draws each task's objects in its own
+#: colours (the defaults above), ``mono`` draws every object and marker of every task in one grey.
+PALETTES: tuple[str, ...] = ("task", "mono")
+
+#: The ``mono`` palette's one colour (RGB in [0, 1]): a light grey on the grey table
+#: (TABLE_COLOR = 100/255). Lit from above it stays within the table's bin of the colour histogram's
+#: 4 levels per channel (0-127 of 255), so that histogram sees table and objects as one colour, while
+#: the contrast (about 20 of 255 grey levels) is visible to a network.
+MONO_COLOR = (0.47, 0.47, 0.47)
+
+
+def apply_palette(model: Any, palette: str, skip_geoms: set[int], skip_bodies: set[int]) -> None:
+    """Recolour ``model`` for ``palette`` (one of :data:`PALETTES`; drawing only, physics unchanged).
+
+    ``mono``: every geom and site with a visible colour (alpha > 0) takes :data:`MONO_COLOR`,
+    except the geoms in ``skip_geoms`` (the table) and anything of the bodies ``skip_bodies``
+    (the robot); materials are detached so the colour is the geom's own. The light becomes flat
+    (the headlight's ambient term alone, as bright as the table lit from above was): a face is
+    drawn in its own colour whatever its slope, so no shade of a slanted face tells one object's
+    shape from another's by colour. Only the silhouettes and the layout remain."""
+    if palette not in PALETTES:
+        raise ValueError(f"palette must be one of {list(PALETTES)}, got {palette!r}")
+    if palette == "task":
+        return
+    rgb = np.asarray(MONO_COLOR, dtype=np.float32)
+    for i in range(model.ngeom):
+        if i in skip_geoms or int(model.geom_bodyid[i]) in skip_bodies or model.geom_rgba[i, 3] <= 0:
+            continue
+        model.geom_matid[i] = -1
+        model.geom_rgba[i, :3] = rgb
+    for i in range(model.nsite):
+        if int(model.site_bodyid[i]) in skip_bodies or model.site_rgba[i, 3] <= 0:
+            continue
+        model.site_matid[i] = -1
+        model.site_rgba[i, :3] = rgb
+    _flatten_light(model)
+
+
+def _flatten_light(model: Any) -> None:
+    """Replace the scene's lights by a uniform ambient light as bright as an upward face saw
+    (the headlight and every active light's ambient and diffuse terms, as both renderers light)."""
+    head = model.vis.headlight
+    level = float(np.mean(head.ambient) + np.mean(head.diffuse)) if head.active else 0.0
+    for i in range(model.nlight):
+        if not model.light_active[i]:
+            continue
+        level += float(np.mean(model.light_ambient[i]))
+        if model.light_directional[i]:
+            d = -np.asarray(model.light_dir[i], dtype=np.float64)
+            level += float(np.mean(model.light_diffuse[i])) * max(float(d[2]) / max(float(np.linalg.norm(d)), 1e-12), 0.0)
+    head.active = 1
+    head.ambient[:] = level
+    head.diffuse[:] = 0.0
+    model.light_active[:] = 0

@@ -84,6 +84,8 @@ def run_evaluation(
     selections: Sequence[str] = SELECTIONS,
     log: Callable[[str], None] | None = None,
     new_policy: Callable[[int], tuple[int, Any]] | None = None,
+    split: str = "report",
+    frames_per_episode: int = 1,
 ) -> dict[str, Any]:
     """One pass over ``pairs``: returns ``{"pairs": rows, "time_s": {...}, ...}`` (see module doc).
 
@@ -91,7 +93,10 @@ def run_evaluation(
     ``nearest_distance``); ``weights_map`` is ``{policy id: (version, weights or handle)}``.
     When the rule would create a policy (decision ``new``), the agent would act with a fresh one:
     ``new_policy(policy_id)`` gives its ``(version, weights)`` (without it such pairs get no
-    ``agnostic`` result).
+    ``agnostic`` result). The ``agnostic`` episodes are acted by each episode's own choice
+    (``choose`` on its ``frames_per_episode`` first frames; the nearest policy of the record's
+    ``distances`` where that choice is ``new``); the pair-level choice is recorded beside it.
+    ``split``: the seeds' split (:data:`~covers_dist.evaluation.protocol.SPLITS`).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -99,26 +104,35 @@ def run_evaluation(
         raise ValueError("no (task, g) pairs to evaluate")
     t0 = time.perf_counter()
     times: dict[str, float] = {}
-    seeds = {p.key: pair_seeds(run_seed, p, episodes) for p in pairs}
+    if frames_per_episode < 1:
+        raise ValueError(f"frames_per_episode must be >= 1, got {frames_per_episode}")
+    seeds = {p.key: pair_seeds(run_seed, p, episodes, split) for p in pairs}
     frames = _gather(executors, "eval_first_frames", [(p, seeds[p.key]) for p in pairs])
     times["frames"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     choices: dict[str, dict[str, Any]] = {}
-    agnostic: dict[str, int] = {}
+    episode_choices: dict[str, list[int]] = {}
     if "agnostic" in selections:
+        k = frames_per_episode
         for p, obs in zip(pairs, frames):
-            record = choose(obs, [p.group_id] * len(obs["image"]))
-            choices[p.key] = record
-            agnostic[p.key] = int(record["policy_id"])
+            choices[p.key] = choose(obs, [p.group_id] * len(obs["image"]))
+            own = []
+            for i in range(len(obs["image"]) // k):
+                part = {key: v[i * k : (i + 1) * k] for key, v in obs.items()}
+                own.append(episode_policy(choose(part, [p.group_id] * k)))
+            episode_choices[p.key] = own
     weights_map = dict(weights_map)
-    for pid in sorted(set(agnostic.values()) - set(weights_map)):  # "new": a fresh policy would act
+    pair_level = {p: int(c["policy_id"]) for p, c in choices.items()}
+    for pid in sorted(set(pair_level.values()) - set(weights_map)):  # "new": a fresh policy would act
         if new_policy is not None:
             weights_map[pid] = new_policy(pid)
-    agnostic = {k: v for k, v in agnostic.items() if v in weights_map}
+    episode_choices = {key: own for key, own in episode_choices.items() if all(q in weights_map for q in own)}
     oracle = {g: p for g, p in oracle.items() if p in weights_map}
     times["choose"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    jobs = plan_jobs(pairs, agnostic, oracle if "oracle" in selections else {}, run_seed, episodes, modes, selections)
+    jobs = plan_jobs(
+        pairs, episode_choices, oracle if "oracle" in selections else {}, run_seed, episodes, modes, selections, split
+    )
     if log is not None:
         log(
             f"evaluation: {len(pairs)} (task, g) pairs, {len(jobs)} jobs of {episodes} episodes "
@@ -127,16 +141,30 @@ def run_evaluation(
     outcomes = _gather(executors, "eval_jobs", jobs, weights_map) if jobs else []
     times["episodes"] = time.perf_counter() - t2
     times["total"] = time.perf_counter() - t0
+    own = [q != pair_level.get(key) for key, choices_ in episode_choices.items() for q in choices_]
     return {
+        "split": split,
+        "seeds": {key: list(v) for key, v in seeds.items()},
+        "episode_choice_disagreement": float(np.mean(own)) if own else None,
         "episodes_per_job": int(episodes),
         "modes": list(modes),
         "selections": list(selections),
-        "pairs": pair_rows(pairs, jobs, outcomes, choices, oracle),
+        "pairs": pair_rows(pairs, jobs, outcomes, choices, oracle, episode_choices),
         "time_s": times,
         "eval_episodes": int(sum(len(o["success"]) for o in outcomes)),
         # different reset states behind the pass (the same state met by two modes or policies counts once)
         "distinct_initial_states": len({k for o in outcomes for k in o.get("state_key", []) if k is not None}),
     }
+
+
+def episode_policy(record: dict[str, Any]) -> int:
+    """The policy that acts in an episode, from the assignment record of its own first frames: the
+    record's choice, or where the rule would start a new policy, the nearest one (a deployed agent
+    acts with a policy it has)."""
+    if record.get("decision") == "new" and record.get("distances"):
+        d = {int(k): (float("inf") if v is None else float(v)) for k, v in record["distances"].items()}
+        return min(sorted(d), key=lambda q: d[q])
+    return int(record["policy_id"])
 
 
 def append_pass(run_dir: str | Path, ev: dict[str, Any]) -> Path:

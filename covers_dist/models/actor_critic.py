@@ -173,7 +173,10 @@ class ActorCritic(nn.Module):
         device = self.log_std_free.device
         key = (device, *(p._version for p in cache["params"]))
         if cache.get("key") != key:
-            cache["core"] = self.core.export_fast().to(device=device, memory_format=torch.channels_last)
+            # escnn's export builds modules (random initial weights, then overwritten): keep the
+            # caller's random stream as it was, so when an export happens never changes a result
+            with torch.random.fork_rng(devices=[]):
+                cache["core"] = self.core.export_fast().to(device=device, memory_format=torch.channels_last)
             cache["key"] = key
         return cache["core"]
 

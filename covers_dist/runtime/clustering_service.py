@@ -4,7 +4,8 @@ A plain class: in a Ray run it is the named clustering actor (see :mod:`.actors`
 the driver calls it directly, and ``covers-dist serve --run-dir`` loads one read-only.
 
 * It receives only the first-k observations of each episode, never whole trajectories.
-* Features come from each policy's own network (``clustering.feature_source: own``), from one
+* Features come from every policy's own network side by side (``clustering.feature_source:
+  joint``, the default), from each policy's own network for its own buffer (``own``), from one
   frozen encoder (``shared``) or from a fixed colour histogram of the frame (``colors``). The
   driver passes ``{policy id: (version, weights)}`` with every assignment; weights are loaded only
   when a version changed.
@@ -32,6 +33,7 @@ import torch
 
 from ..clustering import PolicyBank, load_bank, save_bank
 from ..clustering.features import SharedFeatures, color_histogram
+from ..clustering.joint import JointFeatures
 from ..config import Config, config_to_dict
 from ..envs import suite_layout
 from ..models import build_actor_critic
@@ -73,6 +75,8 @@ class ClusteringService:
     def _feature_fn(self) -> Any:
         if self.cfg.clustering.feature_source == "colors":
             return SharedFeatures(color_histogram)
+        if self.cfg.clustering.feature_source == "joint":
+            return JointFeatures(self._encoders)
         if self.cfg.clustering.feature_source == "shared":
             torch.manual_seed(policy_seed(self.cfg.seed, 0))
             shared = build_actor_critic(self.cfg.network, self.layout).eval()
@@ -84,6 +88,10 @@ class ClusteringService:
         if self.cfg.runtime.method in SINGLE_POLICY_METHODS:
             bank.max_policies = 1
         return bank
+
+    def _encoders(self) -> dict[int, tuple[int, Any]]:
+        """``{policy id: (weights version, encoder)}`` of the bank's policies with weights (joint features)."""
+        return {pid: (self.versions.get(pid, -1), m.features_np) for pid, m in self.models.items() if pid in self.bank.entries}
 
     def _own_features(self, policy_id: int, obs: dict[str, np.ndarray]) -> np.ndarray:
         model = self.models.get(policy_id)

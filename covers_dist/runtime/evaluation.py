@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 from ..config import Config
 from ..envs.stream import TaskStream
+from ..evaluation.protocol import SPLITS
 from ..evaluation import append_pass, continual_metrics, eval_pairs, metric_row, read_passes, run_evaluation
 from ..evaluation.metrics import held_groups
 from ..evaluation.protocol import oracle_policies
@@ -76,8 +77,11 @@ def evaluation_pass(
     tasks: list[str] | None = None,
     episodes: int | None = None,
     log: Callable[[str], None] | None = None,
+    split: str = "stop",
 ) -> dict[str, Any]:
-    """One pass over every (task, g) of ``tasks`` (default: ``eval.tasks`` or all), as a dict for eval.jsonl."""
+    """One pass over every (task, g) of ``tasks`` (default: ``eval.tasks`` or all), as a dict for
+    eval.jsonl; ``split``: ``stop`` for the passes of training (their initial states decide the
+    stop), ``report`` for the run's report (``covers-dist eval``)."""
     pairs = eval_pairs(stream, episodes_done, tasks if tasks is not None else cfg.eval.tasks)
     result = run_evaluation(
         executors,
@@ -91,6 +95,8 @@ def evaluation_pass(
         selections=list(dict.fromkeys(cfg.eval.selections)),
         log=log,
         new_policy=lambda pid: fresh_policy_weights(cfg, pid),
+        split=split,
+        frames_per_episode=cfg.clustering.initial_frames,
     )
     return {**info, "episodes": int(episodes_done), "seed": cfg.seed, "time_unix": time.time(), **result}
 
@@ -244,6 +250,7 @@ def evaluate_saved_run(
     modes: list[str] | None = None,
     selections: list[str] | None = None,
     workers: int = 0,
+    split: str = "report",
     write: bool = True,
     log: Callable[[str], None] = print,
 ) -> SavedRunEvaluation:
@@ -252,7 +259,8 @@ def evaluate_saved_run(
 
     ``modes`` / ``selections`` replace the run's ``eval.modes`` / ``eval.selections``; ``workers``
     > 0 runs the episodes on that many Ray actors of a local, loopback-only Ray instance (0: in this
-    process). The pass is appended to ``RUN_DIR/eval.jsonl`` unless ``write`` is False.
+    process); ``split``: the initial states (``report``, never seen by the training passes, or
+    ``stop``, theirs). The pass is appended to ``RUN_DIR/eval.jsonl`` unless ``write`` is False.
     Raises ``ValueError`` (a bad argument; ``ConfigError`` is one), ``FileNotFoundError`` or
     ``CheckpointError`` (no run, no valid checkpoint), each naming the problem.
     """
@@ -263,6 +271,8 @@ def evaluate_saved_run(
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if workers < 0:
         raise ValueError(f"workers must be >= 0, got {workers}")
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {list(SPLITS)}, got {split!r}")
     saved = load_saved_run(run_dir, log=log)
     cfg = saved.cfg
     if tasks is not None:
@@ -301,6 +311,7 @@ def evaluate_saved_run(
             tasks=tasks,
             episodes=episodes,
             log=log,
+            split=split,
         )
     finally:
         executors.close()

@@ -14,7 +14,7 @@ from typing import Any
 from ..config import Config, load_run_config
 from .checkpoint import CheckpointError, latest_valid_checkpoint
 
-__all__ = ["SavedRun", "load_saved_run", "model_weights", "probe_mismatch"]
+__all__ = ["SavedRun", "load_checkpoint", "load_saved_run", "model_weights", "probe_mismatch"]
 
 
 @dataclass
@@ -75,12 +75,6 @@ def load_saved_run(run_dir: str | Path, log: Any = print) -> SavedRun:
     Raises ``FileNotFoundError`` for a missing directory or one that is not a run (no
     config.yaml), :class:`CheckpointError` when no checkpoint verifies.
     """
-    import torch
-
-    from ..envs import suite_layout
-    from ..models import build_actor_critic
-    from .clustering_service import ClusteringService
-
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run directory {str(run_dir)!r} does not exist")
@@ -89,6 +83,20 @@ def load_saved_run(run_dir: str | Path, log: Any = print) -> SavedRun:
     ckpt = latest_valid_checkpoint(run_dir, log=log)
     if ckpt is None:
         raise CheckpointError(f"{run_dir} has no valid checkpoint under checkpoints/ (has it trained one iteration?)")
+    return load_checkpoint(run_dir, ckpt, log=log)
+
+
+def load_checkpoint(run_dir: str | Path, ckpt: str | Path, log: Any = print) -> SavedRun:
+    """The checkpoint directory ``ckpt`` of the run ``run_dir`` (its config, bank and weights), read-only."""
+    import torch
+
+    from ..envs import suite_layout
+    from ..models import build_actor_critic
+    from .clustering_service import ClusteringService
+
+    run_dir, ckpt = Path(run_dir), Path(ckpt)
+    if not (ckpt / "learners").is_dir() or not (ckpt / "bank").is_dir():
+        raise CheckpointError(f"{ckpt} is not a checkpoint directory (no learners/ or bank/)")
     cfg = load_run_config(ckpt / "config.yaml" if (ckpt / "config.yaml").is_file() else run_dir / "config.yaml")
     model = build_actor_critic(cfg.network, suite_layout(cfg.env.suite, cfg.env.image_size))
     names = {n for n, _ in model.named_parameters()}
