@@ -5,7 +5,8 @@ learners as on Ray, in one process) on each stream for each decision rule
 (``clustering.rule``) and assignment moment (``clustering.assign_at``), and reports:
 
 * false splits per 1,000 assignments: policies created beyond one per true group (on a
-  one-group stream every new policy is one);
+  one-group stream every new policy is one), whether healing merged them later or not
+  (``policies`` is the bank's size at the end, ``policies_created`` and ``merges`` beside it);
 * ARI between the policy id and the true group of every training episode;
 * the fraction of episodes acted by a policy other than the one they were assigned to.
 
@@ -117,11 +118,13 @@ def run_stream(
                 result = trainer.run()
             assignments = trainer.iteration
             row = result["row"]
+            summary = trainer.backend.call_clustering("summary")
         finally:
             trainer.close()
     policies = int(result["num_policies"])
+    created = int(summary.get("policies_created", policies))
     groups = len((result.get("confusion") or {}).get("groups", [])) or 1  # true groups the stream showed
-    false_splits = max(policies - groups, 0)
+    false_splits = max(created - groups, 0)  # every policy created beyond one per group, healed or not
     return {
         "stream": stream,
         "rule": rule,
@@ -132,6 +135,8 @@ def run_stream(
         "env_steps": int(row.get("env_steps", 0)),
         "assignments": assignments,
         "policies": policies,
+        "policies_created": created,
+        "merges": len(summary.get("merges", [])),
         "true_groups": groups,
         "false_splits": false_splits,
         "false_splits_per_1000": 1000.0 * false_splits / max(assignments, 1),

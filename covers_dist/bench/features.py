@@ -86,16 +86,17 @@ def held_out_frames(cfg: Any, batch: int, batches: int, seed: int, palette: str 
     elements = list(get_group(cfg.env.group))
     out: dict[int, list[dict]] = {}
     for gid, task in enumerate(cfg.env.tasks):
-        env = make_task(env_cfg, task, elements[0])
+        envs = [make_task(env_cfg, task, g) for g in elements[: min(batches, len(elements))]]
         out[gid] = []
         for b in range(batches):
-            env.set_element(elements[b % len(elements)])
+            env = envs[b % len(elements)]
             frames = []
             for i in range(batch):
                 s = int(np.random.SeedSequence([seed, _SEED_TAG, gid, b, i]).generate_state(1)[0])
                 frames.append(env.reset(seed=s)[0])
             out[gid].append({k: np.stack([f[k] for f in frames]) for k in ("image", "proprio")})
-        env.close()
+        for env in envs:
+            env.close()
     return out
 
 
