@@ -47,6 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--agreement", action="store_true", help="also compare the numpy image with MuJoCo's GL image")
     p.add_argument("--grid", metavar="PNG", help="write the D4 grid of the tasks to this PNG and exit")
     p.add_argument("--seed", type=int, default=0, help="seed of placements and actions (default: 0)")
+    p.add_argument("--palette", choices=("task", "mono"), default="task", help="--grid: object colours (env.palette)")
     p.add_argument("--json", action="store_true", help="print one JSON object per task and policy")
     p.set_defaults(func=run)
 
@@ -192,7 +193,9 @@ def render_agreement(task: str, image_size: int = 64, states: int = 10, seed: in
     }
 
 
-def save_d4_grid(path: str, tasks: list[str], image_size: int = 64, seed: int = 0, steps: int = 25, scale: int = 3) -> None:
+def save_d4_grid(
+    path: str, tasks: list[str], image_size: int = 64, seed: int = 0, steps: int = 25, scale: int = 3, palette: str = "task"
+) -> None:
     """PNG grid: one row per task, one column per D4 element, each the transformed task's own image.
 
     Every cell comes from its own transformed env after the same ``steps`` expert steps from the
@@ -213,7 +216,7 @@ def save_d4_grid(path: str, tasks: list[str], image_size: int = 64, seed: int = 
         y = head_h + i * (cell + pad)
         draw.text((4, y + cell // 2 - 12), f"{TASKS[task].label}\n{task}", fill=(0, 0, 0))
         for j, g in enumerate(D4_ELEMENTS):
-            env = MetaWorldTask(task, g, image_size=image_size)
+            env = MetaWorldTask(task, g, image_size=image_size, palette=palette)
             obs, _ = env.reset(seed=seed)
             for _ in range(steps):
                 obs = env.step(env.expert_action())[0]
@@ -234,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
     if not MIN_IMAGE_SIZE <= args.image_size <= MAX_IMAGE_SIZE:
         raise SystemExit(f"covers-dist bench render: --image-size must be {MIN_IMAGE_SIZE}..{MAX_IMAGE_SIZE}")
     if args.grid:
-        save_d4_grid(args.grid, args.tasks, args.image_size, args.seed)
+        save_d4_grid(args.grid, args.tasks, args.image_size, args.seed, palette=args.palette)
         print(json.dumps({"grid": args.grid}) if args.json else f"wrote {args.grid}")
         return 0
     policies = ("random", "expert") if args.policy == "both" else (args.policy,)
