@@ -191,6 +191,25 @@ def test_snapshot_follows_new_assignments(cfg):
             assert c.get("/v1/assignments/latest").json()["last"]["index"] == 2
 
 
+def test_a_merged_policy_is_served_as_retired(cfg):
+    """After the bank merges a policy into another, /v1/policies lists it under ``retired`` with
+    the merge, counts it in ``policies_created``, and no longer serves it as a policy."""
+    service = filled_service(cfg, STREAM)
+    created = len(service.bank)
+    assert created >= 2
+    young = max(service.bank.policy_ids)
+    with service._lock:
+        merge = service.bank.merge(young, 0, distance=0.5)
+    with ApiServerThread(create_app(cfg, LocalSource(service), token="")).start() as server:
+        with httpx.Client(base_url=server.url, timeout=30) as c:
+            body = wait_until(lambda: (b := c.get("/v1/policies").json())["num_policies"] == created - 1 and b, timeout_s=5)
+            assert body["policies_created"] == created
+            assert [p["policy_id"] for p in body["retired"]] == [young] and body["retired"][0]["merged_into"] == 0
+            assert body["merges"] == [merge]
+            assert young not in [p["policy_id"] for p in body["policies"]]
+            assert c.get(f"/v1/policies/{young}").status_code == 404
+
+
 def test_empty_bank(cfg):
     service = ClusteringService(cfg)
     with ApiServerThread(create_app(cfg, LocalSource(service), token="")).start() as server:

@@ -103,17 +103,38 @@ class PolicySummary(BaseModel):
     last_return: float | None = Field(description="Return of its latest reported episode.")
 
 
+class Merge(BaseModel):
+    """One repaired split: a policy retired into an older one (docs/clustering.md, "A bank that heals")."""
+
+    retired: int = Field(description="The policy merged away: never chosen again, its id never reused.")
+    into: int = Field(description="The policy that took its frames, episodes and labels.")
+    distance: float | None = Field(description="W1 between the two buffers when they were merged.")
+    at_assignment: int = Field(description="Assignments made before the merge.")
+    episodes: int = Field(description="Episodes the retired policy had been assigned.")
+    assignments: int
+    time_unix: float | None
+
+
+class RetiredPolicy(PolicySummary):
+    """A policy merged into another."""
+
+    merged_into: int
+
+
 class PolicyList(BaseModel):
     """Every policy of the bank and the bank's settings."""
 
     current_policy_id: int | None
     num_policies: int
+    policies_created: int = Field(0, description="Policies ever created: num_policies plus the retired ones.")
     metric: str
     threshold: float | None
     mode: str
     buffer_size: int
     max_policies: int
     policies: list[PolicySummary]
+    retired: list[RetiredPolicy] = Field(default_factory=list, description="Policies merged into another.")
+    merges: list[Merge] = Field(default_factory=list, description="Every merge, in order.")
     as_of: float = Field(description="Unix time at which this state was read from the clustering service.")
 
 
@@ -136,6 +157,7 @@ class AssignmentRecord(BaseModel):
     true_groups: list[int] | None = Field(description="True group id of each episode (evaluation only).")
     wall_time_ms: float | None
     time_unix: float | None = Field(description="Unix time of the decision.")
+    merges: list[Merge] | None = Field(None, description="Merges the bank made just before this assignment.")
 
 
 class CurrentAssignment(BaseModel):

@@ -84,7 +84,11 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"# {result.run_dir} at iteration {ev['iteration']} ({ev['env_steps']} env steps, {result.checkpoint})")
     print(f"{ev['eval_episodes']} evaluation episodes from {ev['distinct_initial_states']} distinct initial states "
-          f"in {ev['time_s']['total']:.1f} s\n")  # fmt: skip
+          f"in {ev['time_s']['total']:.1f} s (split {ev.get('split', 'report')})")  # fmt: skip
+    if ev.get("episode_choice_disagreement") is not None:
+        print(f"agnostic: each episode acted by its own first frames' choice; it differed from the pair-level "
+              f"choice in {100 * ev['episode_choice_disagreement']:.1f}% of the episodes")  # fmt: skip
+    print()
     print(pairs_table(ev))
     print()
     print(_summary(cl))

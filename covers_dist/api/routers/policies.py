@@ -7,16 +7,16 @@ from typing import Any
 from fastapi import APIRouter, Depends, HTTPException, Path, Response
 
 from ..deps import ERROR_RESPONSES, ApiState, api_state, current_snapshot, require_token, snapshot_json
-from ..schemas import ErrorBody, PolicyList, PolicySummary
+from ..schemas import ErrorBody, Merge, PolicyList, PolicySummary, RetiredPolicy
 from ..snapshot import Snapshot
 
 router = APIRouter(prefix="/v1/policies", tags=["policies"], dependencies=[Depends(require_token)])
 
 
-def _policy(entry: dict[str, Any], names: dict[str, str]) -> PolicySummary:
+def _policy(entry: dict[str, Any], names: dict[str, str], model: type[PolicySummary] = PolicySummary) -> PolicySummary:
     hist = entry.get("group_histogram", {})
     by_name = {names.get(g, g): n for g, n in hist.items()}
-    return PolicySummary(**entry, group_histogram_by_name=by_name)
+    return model(**entry, group_histogram_by_name=by_name)
 
 
 def _names(snap: Snapshot, state: ApiState) -> dict[str, str]:
@@ -33,12 +33,15 @@ async def list_policies(
         return PolicyList(
             current_policy_id=s.get("current_policy_id"),
             num_policies=s.get("num_policies", 0),
+            policies_created=s.get("policies_created", s.get("num_policies", 0)),
             metric=s.get("metric", ""),
             threshold=s.get("threshold"),
             mode=s.get("mode", ""),
             buffer_size=s.get("buffer_size", 0),
             max_policies=s.get("max_policies", 0),
             policies=[_policy(p, names) for p in s.get("policies", [])],
+            retired=[_policy(p, names, RetiredPolicy) for p in s.get("retired", [])],
+            merges=[Merge(**m) for m in s.get("merges", [])],
             as_of=snap.as_of,
         )
 
