@@ -150,6 +150,18 @@ def test_mono_palette_hides_the_groups_from_the_colour_histogram():
         MetaWorldTask("reach-v3", palette="pink")
 
 
+def test_mono_palette_looks_the_same_through_mujocos_gl_camera():
+    """The flat light is the model's own: MuJoCo's GL renderer draws the mono frame as the numpy one."""
+    frames = []
+    for backend in ("numpy", "egl"):
+        env = MetaWorldTask("drawer-close-v3", image_size=64, palette="mono", render_backend=backend)
+        try:
+            frames.append(env.reset(seed=3)[0]["image"].astype(int))
+        finally:
+            env.close()
+    assert np.abs(frames[0] - frames[1]).mean() < 1.0
+
+
 def test_mono_palette_is_a_metaworld_config_value():
     from covers_dist.config import ConfigError
 

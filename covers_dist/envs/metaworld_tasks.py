@@ -215,15 +215,11 @@ def apply_palette(model: Any, palette: str, skip_geoms: set[int], skip_bodies: s
 def _flatten_light(model: Any) -> None:
     """Replace the scene's lights by a uniform ambient light as bright as an upward face saw
     (the headlight and every active light's ambient and diffuse terms, as both renderers light)."""
+    from .topdown_render import light_setup
+
+    ambient, dirs, diffuse = light_setup(model)
+    level = ambient + float(np.maximum(dirs[:, 2], 0.0) @ diffuse)
     head = model.vis.headlight
-    level = float(np.mean(head.ambient) + np.mean(head.diffuse)) if head.active else 0.0
-    for i in range(model.nlight):
-        if not model.light_active[i]:
-            continue
-        level += float(np.mean(model.light_ambient[i]))
-        if model.light_directional[i]:
-            d = -np.asarray(model.light_dir[i], dtype=np.float64)
-            level += float(np.mean(model.light_diffuse[i])) * max(float(d[2]) / max(float(np.linalg.norm(d)), 1e-12), 0.0)
     head.active = 1
     head.ambient[:] = level
     head.diffuse[:] = 0.0

@@ -232,22 +232,7 @@ class TopDownRasterizer:
     # ---- internals ----------------------------------------------------------------------------
     @staticmethod
     def _light_setup(model: Any) -> tuple[float, np.ndarray, np.ndarray]:
-        """(ambient, unit directions (L, 3) towards the lights, diffuse (L,)) as seen from above."""
-        head = model.vis.headlight
-        ambient = float(np.mean(head.ambient)) if head.active else 0.0
-        dirs, diffuse = [], []
-        if head.active:  # the headlight shines along the camera axis: straight down
-            dirs.append([0.0, 0.0, 1.0])
-            diffuse.append(float(np.mean(head.diffuse)))
-        for i in range(model.nlight):
-            if not model.light_active[i]:
-                continue
-            ambient += float(np.mean(model.light_ambient[i]))
-            if model.light_directional[i]:
-                d = -np.asarray(model.light_dir[i], dtype=np.float64)
-                dirs.append(d / max(float(np.linalg.norm(d)), 1e-12))
-                diffuse.append(float(np.mean(model.light_diffuse[i])))
-        return ambient, np.asarray(dirs, dtype=np.float64).reshape(-1, 3), np.asarray(diffuse, dtype=np.float64)
+        return light_setup(model)
 
     def _prepare(self, batch: _Batch, mat: np.ndarray) -> "_Prepared":
         """Per-face data that depends only on the items' orientations (not on their positions)."""
@@ -382,3 +367,22 @@ def _site_rgba(model: Any, i: int) -> np.ndarray:
     if mat >= 0 and np.array_equal(rgba, _DEFAULT_RGBA):
         return np.asarray(model.mat_rgba[mat], dtype=np.float32)
     return rgba
+
+
+def light_setup(model: Any) -> tuple[float, np.ndarray, np.ndarray]:
+    """(ambient, unit directions (L, 3) towards the lights, diffuse (L,)) as seen from above."""
+    head = model.vis.headlight
+    ambient = float(np.mean(head.ambient)) if head.active else 0.0
+    dirs, diffuse = [], []
+    if head.active:  # the headlight shines along the camera axis: straight down
+        dirs.append([0.0, 0.0, 1.0])
+        diffuse.append(float(np.mean(head.diffuse)))
+    for i in range(model.nlight):
+        if not model.light_active[i]:
+            continue
+        ambient += float(np.mean(model.light_ambient[i]))
+        if model.light_directional[i]:
+            d = -np.asarray(model.light_dir[i], dtype=np.float64)
+            dirs.append(d / max(float(np.linalg.norm(d)), 1e-12))
+            diffuse.append(float(np.mean(model.light_diffuse[i])))
+    return ambient, np.asarray(dirs, dtype=np.float64).reshape(-1, 3), np.asarray(diffuse, dtype=np.float64)
