@@ -141,3 +141,25 @@ def test_near_equal_candidates_prefer_the_policy_that_has_trained(rule):
     wide = bank_with(margin)
     assert wide.entries[0].assignments > wide.entries[1].assignments
     assert wide.what_if(probe).policy_id == 0
+
+
+def test_the_clustering_service_keeps_a_merge_across_a_snapshot_and_skips_the_retired_policy():
+    """In the service a run talks to: episodes that finish on a policy merged meanwhile are
+    recorded without error, queries never choose it, and a snapshot restores the merge."""
+    from api_helpers import STREAM, api_config, filled_service, initial_obs
+
+    from covers_dist.runtime.clustering_service import ClusteringService
+
+    cfg = api_config()
+    service = filled_service(cfg, STREAM)
+    young = max(service.bank.policy_ids)
+    service.bank.merge(young, 0, distance=0.1)
+    summaries = [{"episode_index": 10_000 + i, "policy_id": young, "assigned_policy": young, "success": 1.0,
+                  "return": 1.0} for i in range(2)]  # fmt: skip
+    service.record_episodes(summaries)  # the retired policy's last episodes: nothing to record, no error
+    obs = initial_obs(cfg, "reach", "e", [500, 501, 502, 503])
+    assert service.what_if(obs)["policy_id"] != young
+    again = ClusteringService(cfg)
+    again.restore(service.snapshot())
+    assert list(again.bank.retired) == [young] and again.bank.merges == service.bank.merges
+    assert again.summary()["policies_created"] == service.summary()["policies_created"] == len(service.bank) + 1
