@@ -168,7 +168,9 @@ def test_group_evaluation_is_deterministic_and_uses_distinct_states(one_torch_th
     assert first == again
     assert sorted(first["success"]) == sorted(D4) and all(0.0 <= v <= 1.0 for v in first["success"].values())
     assert first["policy"] == {g: 0 for g in D4}
-    assert contender.calls == [2] * 16  # one choice per transform and pass, from its 2 first frames
+    # per transform and pass: the pair-level choice from its 2 first frames, then each episode's own
+    assert contender.calls == [2, 1, 1] * 16
+    assert first["episode_policies"] == {g: [0, 0] for g in D4}
     assert first["distinct_initial_states"] == 16 and first["episodes_per_transform"] == 2
 
 
@@ -234,9 +236,11 @@ def test_covers_evaluates_each_transform_with_the_policy_the_bank_picks(tmp_path
         chosen = out["policy"]
         assert sorted(out["success"]) == sorted(D4) and set(chosen.values()) <= set(policies)
         worker = evaluator.executors.workers[0]
-        for pair in evaluator.pairs:  # the bank's what-if choice (its nearest policy where it would create one)
+        for pair in evaluator.pairs:  # each episode: the bank's what-if choice on its own first frame
             first = worker.eval_first_frames([(pair, pair_seeds(cfg.seed, pair, 2))])[0]
-            assert contender.choose(first, [0, 0])["policy_id"] == chosen[pair.g]
+            own = [contender.choose({k: v[i : i + 1] for k, v in first.items()}, [0])["policy_id"] for i in range(2)]
+            assert out["episode_policies"][pair.g] == own
+            assert chosen[pair.g] == max(set(own), key=lambda q: (own.count(q), -q))
         assert evaluator.evaluate(contender) == out
     finally:
         evaluator.close()

@@ -28,6 +28,7 @@ TINY = [
     "env.episodes_per_task=6",  # a task switch inside most batches of 4
     "env.max_episode_steps=10",
     "clustering.update_every=4",
+    "clustering.feature_source=own",  # the tiny untrained nets split the toy tasks on their own features
     "ppo.epochs=1",
     "ppo.minibatch_size=40",
     "network.channels=[2,4]",

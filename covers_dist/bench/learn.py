@@ -258,7 +258,8 @@ class GroupEvaluation:
             "success": {g: float(res["success"]) for g, res in per.items()},
             "ci95": {g: res["ci95"] for g, res in per.items()},
             "pooled": {"successes": k, "n": n, "ci95": [round(x, 4) for x in wilson_interval(k, n)]},
-            "policy": {g: res["policy_id"] for g, res in per.items()},
+            "policy": {g: res["policy_id"] for g, res in per.items()},  # the policy acting most episodes
+            "episode_policies": {row["g"]: row.get("episode_policies") for row in ev["pairs"]},
             "episodes_per_transform": self.episodes,
             "distinct_initial_states": int(ev["distinct_initial_states"]),
         }
