@@ -40,6 +40,8 @@ __all__ = [
     "config_to_dict",
     "apply_overrides",
     "DEFAULT_THRESHOLDS",
+    "describe",
+    "reference",
 ]
 
 
@@ -921,14 +923,22 @@ def load_run_config(path: str | Path) -> Config:
 
 def describe(cls: type = Config, prefix: str = "") -> list[tuple[str, str, Any, str]]:
     """(dotted name, type, default, doc) for every field, for ``covers-dist config --describe``."""
+    return [(r["name"], r["type"], r["default"], r["doc"]) for r in reference(cls, prefix)]
+
+
+def reference(cls: type = Config, prefix: str = "") -> list[dict[str, Any]]:
+    """Every field as ``{"name", "type", "default", "range", "doc"}`` (``range``: the bounds that
+    loading checks, e.g. ``>= 1``; "" for none), in declaration order (docs/configuration.md)."""
     out = []
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
         tp = hints[f.name]
         name = prefix + f.name
         if dataclasses.is_dataclass(tp):
-            out.extend(describe(tp, name + "."))
+            out.extend(reference(tp, name + "."))
             continue
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-        out.append((name, _type_name(tp), default, f.metadata.get("doc", "")))
+        bounds = [f"{op} {f.metadata[key]}" for key, op in (("min", ">="), ("gt", ">"), ("max", "<=")) if key in f.metadata]
+        out.append({"name": name, "type": _type_name(tp), "default": default, "range": ", ".join(bounds),
+                    "doc": f.metadata.get("doc", "")})  # fmt: skip
     return out

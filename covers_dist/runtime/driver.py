@@ -36,6 +36,7 @@ import yaml
 from ..config import Config, config_to_dict, load_run_config
 from ..envs.stream import TaskStream
 from ..ppo.noise import faded_beta
+from ..results.provenance import record_start
 from .checkpoint import latest_valid_checkpoint
 from .clustering_service import SINGLE_POLICY_METHODS
 from .evaluation import PeriodicEvaluation
@@ -94,6 +95,7 @@ class Trainer:
             self.backend, single_policy=cfg.runtime.method in SINGLE_POLICY_METHODS, learner_ahead=cfg.runtime.learner_ahead
         )
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+        record_start(self.run_dir, resumed=resume)  # the code's commit and the CPU, for result files
         self.evaluation = PeriodicEvaluation(cfg, self.run_dir, background=not cfg.runtime.serial, log=self.log)
 
     # ---- Algorithm 1 -------------------------------------------------------------------------
