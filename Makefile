@@ -1,7 +1,7 @@
 # covers-dist: two commands for a new machine (Debian, Python 3.11):
 #   make demo   install everything into .venv/ and train the demo (runs/demo)
 #   make test   install everything into .venv/ and run the default test suite
-# Which torch build (docs/install.md): TORCH=pypi (default) installs PyPI's torch==2.13.0, which
+# Which torch build (docs/guide/install.md): TORCH=pypi (default) installs PyPI's torch==2.13.0, which
 # on Linux x86_64 is the CUDA build (it pulls several GB of nvidia-* wheels); TORCH=cuda is the
 # same install, named for what it gives there; TORCH=cpu takes the CPU-only build from PyTorch's
 # own index (TORCH_CPU_INDEX). To switch builds in an existing .venv: make clean-venv first.

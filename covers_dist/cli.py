@@ -45,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _discover("covers_dist.commands"):
         mod.register(sub)
-    bench = sub.add_parser("bench", help="benchmarks that print measured figures (listed in docs/usage.md)")
+    bench = sub.add_parser("bench", help="benchmarks that print measured figures (listed in docs/guide/usage.md)")
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH")
     for mod in _discover("covers_dist.bench"):
         mod.register(bench_sub)

@@ -68,7 +68,7 @@ METAWORLD_MAX_PATH_LENGTH = 500
 #: Per-metric default thresholds d_eps, in units of the buffer's feature spread (clustering.feature_norm
 #: "buffer"; the Mahalanobis distance is scale-free). Paper (raw trained features): W1 1.0, Euclidean
 #: 0.3-0.7, Mahalanobis 3-7; these values sit in the measured gap between same-group and other-group
-#: distances on the toy stream (docs/clustering.md).
+#: distances on the toy stream (docs/guide/clustering.md).
 DEFAULT_THRESHOLDS: dict[str, float] = {"wasserstein": 1.0, "euclidean": 0.8, "mahalanobis": 10.0}
 
 
@@ -124,7 +124,7 @@ class EnvConfig:
         "task",
         "Object colours (metaworld suite): task = each task's objects in their own colours; mono = every object "
         "and marker of every task in one light grey on the grey table, so that only shape and layout tell the "
-        "groups apart (docs/tasks.md).",
+        "groups apart (docs/guide/tasks.md).",
     )
 
     def __post_init__(self) -> None:
@@ -186,19 +186,19 @@ class NetworkConfig:
         "The Gaussian's mean: tanh of the policy head's output, inside the action box [-1, 1] (tanh is odd, so "
         "it commutes with the D4 signed permutations of (dx, dy): equivariance stays exact), or linear: the "
         "head's output itself (older runs; its mean can drift far outside the box, where the env's clipping "
-        "makes those entries' gradient pure noise: docs/learning.md).",
+        "makes those entries' gradient pure noise: docs/research/learning.md).",
     )
     proprio_norm: bool = _f(
         False,
         "Feed (proprio - shift) * scale with the task family's fixed statistics (Meta-World: hand position in "
-        "tenths of a metre about the table's centre, gripper opening to -1..1; docs/models.md). Planar pairs "
+        "tenths of a metre about the table's centre, gripper opening to -1..1; docs/guide/models.md). Planar pairs "
         "take one scale and no shift, so equivariance stays exact. false: the raw proprio (older runs).",
     )
     critic: Literal["shared", "separate"] = _f(
         "shared",
         "shared: the value head reads the policy's trunk (one network); separate: the value comes from a second "
         "core of the same shape, so the value loss no longer moves the features the policy and the clustering "
-        "read (about twice the network's compute; docs/models.md).",
+        "read (about twice the network's compute; docs/guide/models.md).",
     )
     cnn_width: float | None = _f(
         None,
@@ -217,7 +217,7 @@ class PPOConfig:
     vf_clip_coef: float | None = _f(
         None,
         "Value clipping range (null: no value clipping, the default: with return normalisation it only slowed "
-        "the critic, docs/learning.md).",
+        "the critic, docs/research/learning.md).",
     )
     ent_coef: float = _f(0.0, "Entropy bonus coefficient.", min=0.0)
     ent_schedule: Literal["constant", "linear"] = _f(
@@ -272,21 +272,21 @@ class PPOConfig:
         "behaviour",
         "What ppo.target_kl measures the policy's move from: behaviour = the policy that acted the batch (a "
         "pipelined batch is acted one update old, so a batch can stop at its first minibatch, before any step: "
-        "docs/learning.md); update_start = the policy at the start of this update (one more forward pass).",
+        "docs/research/learning.md); update_start = the policy at the start of this update (one more forward pass).",
     )
     log_std_cap: float | None = _f(
         None,
         "A falling cap on the policy's learned log standard deviation: after each update every entry is clipped "
         "to at most a bound that falls linearly from the learner's starting value (network.init_log_std) at "
         "update 0 to this at ppo.total_updates, and stays there (the exploration noise shrinks on a schedule "
-        "without an entropy term; docs/learning.md). null: the standard deviation is learned freely.",
+        "without an entropy term; docs/research/learning.md). null: the standard deviation is learned freely.",
     )
     weight_average: float | None = _f(
         None,
         "Decay d of an exponential moving average of the policy's weights, kept by its learner beside them and "
         "moved after every update (avg = d * avg + (1 - d) * weights; the parameters are the equivariant basis "
         "coefficients, so the average is exactly equivariant too). Training never acts with it: `bench learn` "
-        "evaluates it, with the newest weights beside it on the same points (docs/learning.md, \"The average of "
+        "evaluates it, with the newest weights beside it on the same points (docs/research/learning.md, \"The average of "
         "the last weights\"). null: none kept.",
         gt=0.0,
         max=0.999,
@@ -309,7 +309,7 @@ class PPOConfig:
         "return",
         "return: rewards (after reward_scale) are divided by a running standard deviation of the discounted "
         "return, kept across updates in the learner's state, so value targets are O(1) on any reward scale "
-        "(docs/learning.md); none: rewards times reward_scale only.",
+        "(docs/research/learning.md); none: rewards times reward_scale only.",
     )
     precision: Literal["auto", "fp32", "bf16"] = _f(
         "auto",
@@ -330,7 +330,7 @@ class ClusteringConfig:
     feature_source: Literal["joint", "own", "shared", "colors"] = _f(
         "joint",
         "joint = every policy's own invariant encoder output, unit length, side by side: one learned space "
-        "for every comparison (docs/clustering.md, 'Feature sources'); own = each policy's own encoder for "
+        "for every comparison (docs/guide/clustering.md, 'Feature sources'); own = each policy's own encoder for "
         "its own buffer (the paper's); shared = one frozen untrained encoder; colors = a fixed colour "
         "histogram of the frame (hand-designed, no learning; an ablation).",
     )
@@ -346,7 +346,7 @@ class ClusteringConfig:
         "paper's); calibrated = per-policy exact permutation test of d(O, B_i) against d(O', B') for random splits "
         "of the pooled O and B_i into sets of sizes |O| and |B_i|, in the policy's current feature space; a new "
         "policy only when every policy rejects "
-        "(docs/clustering.md, 'Two decision rules').",
+        "(docs/guide/clustering.md, 'Two decision rules').",
     )
     false_split_rate: float = _f(
         0.001,
@@ -365,7 +365,7 @@ class ClusteringConfig:
         None,
         "Healing: every merge_every assignments, a policy whose buffer lies within this W1 distance (the bank's "
         "features and normalization) of an older policy's buffer is merged into it (its frames, episodes and "
-        "labels; its learner stops). null = never merge (docs/clustering.md, 'A bank that heals').",
+        "labels; its learner stops). null = never merge (docs/guide/clustering.md, 'A bank that heals').",
         gt=0.0,
     )
     merge_every: int = _f(8, "Healing: assignments between two merge checks.", min=1)
@@ -451,7 +451,7 @@ class RuntimeConfig:
         0,
         "torch intra-op threads per learner; 0 (auto): runtime.learner_num_cpus rounded up where the learner "
         "reserves cores, else 1 (it shares the cores with the rollout workers: on 2 cores a second thread made "
-        "the pipelined loop slower, docs/runtime.md; on a CPU without native bf16, whose fp32 update outlasts "
+        "the pipelined loop slower, docs/guide/runtime.md; on a CPU without native bf16, whose fp32 update outlasts "
         "sampling, 2 sped up `bench train` but slowed the demo, whose evaluation passes use the idle core: run F).",
         min=0,
     )
@@ -928,7 +928,7 @@ def describe(cls: type = Config, prefix: str = "") -> list[tuple[str, str, Any, 
 
 def reference(cls: type = Config, prefix: str = "") -> list[dict[str, Any]]:
     """Every field as ``{"name", "type", "default", "range", "doc"}`` (``range``: the bounds that
-    loading checks, e.g. ``>= 1``; "" for none), in declaration order (docs/configuration.md)."""
+    loading checks, e.g. ``>= 1``; "" for none), in declaration order (docs/guide/configuration.md)."""
     out = []
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):

@@ -8,7 +8,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 # One intra-op thread per process (pytest's workers and every process they start): two pytest
 # workers already keep both cores busy, and a second OpenMP thread in each only oversubscribes them
-# (on 2 cores the default suite took 6 min 32 s with this against 7 min 43 s without, docs/testing.md).
+# (on 2 cores the default suite took 6 min 32 s with this against 7 min 43 s without, docs/guide/testing.md).
 # Components that choose their own thread count (learners, rollout workers) still set it.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -71,7 +71,7 @@ def tiny_serial_run(tmp_path_factory):
 # The default suite runs on two pytest-xdist workers (`make test`: `-n 2 --dist loadfile
 # --no-loadscope-reorder`), one test module at a time each. A worker that draws a long module last
 # keeps the run going while the other idles, so the modules that take longest (measured, see
-# docs/testing.md) are handed out first and the many short ones fill in behind them. Without xdist
+# docs/guide/testing.md) are handed out first and the many short ones fill in behind them. Without xdist
 # the order changes nothing but the sequence.
 LONGEST_FIRST = (
     "test_chaos.py",

@@ -113,11 +113,11 @@ def test_metrics_json_and_prometheus(client, service):
 
 
 def test_every_exported_metric_is_documented(client):
-    """docs/api.md's metrics table names every family /metrics exports, with its type."""
+    """docs/guide/api.md's metrics table names every family /metrics exports, with its type."""
     import re
     from pathlib import Path
 
-    doc = (Path(__file__).resolve().parents[1] / "docs" / "api.md").read_text()
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "guide" / "api.md").read_text()
     table = dict(re.findall(r"^\| `(covers_[a-z_]+)(?:\{[^}]*\})?` \| (\w+) \|", doc, re.M))
     client.get("/v1/metrics")
     families = list(text_string_to_metric_families(client.get("/metrics").text))

@@ -83,7 +83,7 @@ def test_stream_fast_builds_on_stream_cpu_by_its_base_key():
 
 
 def test_group_fast_is_quickstart_with_the_measured_overrides():
-    # docs/learning.md's per-group runs with stream_fast's settings ran `bench learn` (on quickstart) with these,
+    # docs/research/learning.md's per-group runs with stream_fast's settings ran `bench learn` (on quickstart) with these,
     # but for the clustering's feature source (colors then; the learned joint features and healing since)
     measured = ["ppo.epochs=4", "ppo.minibatch_size=200", "network.init_log_std=0.0", "clustering.feature_source=joint",
                 "clustering.merge_threshold=1.0", "clustering.tie_margin=0.2",
@@ -95,7 +95,7 @@ def test_group_fast_is_quickstart_with_the_measured_overrides():
 
 
 def test_group_alone_is_group_fast_with_the_measured_overrides():
-    # docs/learning.md's separate-critic runs ran `bench learn` with group_fast's settings and these
+    # docs/research/learning.md's separate-critic runs ran `bench learn` with group_fast's settings and these
     measured = ["ppo.target_kl=0.02", "ppo.lr_schedule=linear", "network.critic=separate",
                 "runtime.run_dir=runs/group-alone", "name=group-alone"]  # fmt: skip
     assert load_config("group_alone") == load_config("group_fast", measured)

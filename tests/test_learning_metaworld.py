@@ -8,7 +8,7 @@ g.T for every g when each g.T starts from the same state (the same success, retu
 state on all 8 transforms). Whether a given budget is enough to succeed depends on float rounding
 (thread count, CPU): measured, runs reached 1.00 on all 8 after 8k or 24k env steps and others
 stayed at 0.00, so the learning itself is asserted by the slow tests (serial, and on Ray), with a
-budget that covers that spread (docs/learning.md: 40k env steps on Ray). The toy learning test
+budget that covers that spread (docs/research/learning.md: 40k env steps on Ray). The toy learning test
 (tests/test_learning.py) is the default suite's learning assertion.
 """
 
@@ -101,7 +101,7 @@ def test_drawer_close_is_learned_from_pixels_on_every_transform(tmp_path):
 @pytest.mark.slow
 def test_drawer_close_is_learned_on_ray_where_learner_and_workers_are_separate_processes(tmp_path):
     """The learner, the rollout workers and the evaluation workers are different processes here:
-    the weights they exchange must mean the same policy in each (docs/models.md, the stem's basis)."""
+    the weights they exchange must mean the same policy in each (docs/guide/models.md, the stem's basis)."""
     curve, stderr = _learn(tmp_path, 80000, 20000, serial=False)
     _distinct_states_on_every_transform(curve)
     assert max(p["min_success"] for p in curve) >= 0.9, stderr[-3000:]

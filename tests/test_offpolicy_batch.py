@@ -1,6 +1,6 @@
 """A batch acted by one policy and assigned to another: the assigned policy's learner re-evaluates
 its log-probs and values with its own network (and return scale) before the update; a batch acted
-by the learner's own policy is used as stored, exactly as before (docs/learning.md)."""
+by the learner's own policy is used as stored, exactly as before (docs/research/learning.md)."""
 
 from __future__ import annotations
 

@@ -33,7 +33,7 @@ TINY = [
 
 
 def test_the_docs_generated_parts_are_current(capsys):
-    """The committed tables and docs/configuration.md are what `covers-dist results` writes."""
+    """The committed tables and docs/guide/configuration.md are what `covers-dist results` writes."""
     assert main(["results", "--check", "--root", str(ROOT)]) == 0, capsys.readouterr()
 
 
@@ -65,12 +65,12 @@ def test_update_writes_the_tables_and_the_reference_and_check_changes_nothing(tm
     page.write_text("# Page\n<!-- table: features docs/results/f.jsonl -->\n<!-- /table -->\n")
     (tmp_path / "README.md").write_text("# readme\n")
     assert main(["results", "--check", "--root", str(tmp_path)]) == 1
-    assert page.read_text().count("|") == 0 and not (tmp_path / "docs/configuration.md").exists()
+    assert page.read_text().count("|") == 0 and not (tmp_path / "docs/guide/configuration.md").exists()
     out = capsys.readouterr().out
-    assert "stale: docs/configuration.md" in out and "stale: docs/page.md" in out
+    assert "stale: docs/guide/configuration.md" in out and "stale: docs/page.md" in out
     assert main(["results", "--root", str(tmp_path)]) == 0
     assert "| 1,450,800 |" in page.read_text()
-    assert (tmp_path / "docs/configuration.md").read_text() == configuration_reference()
+    assert (tmp_path / "docs/guide/configuration.md").read_text() == configuration_reference()
     assert main(["results", "--check", "--root", str(tmp_path)]) == 0
     assert main(["results", "--check", "--root", str(tmp_path / "docs")]) == 2  # not a checkout
     assert "not a covers-dist checkout" in capsys.readouterr().err

@@ -5,7 +5,7 @@
 * :func:`start_api_server` starts it next to a training run (a thread, or a process of its own);
 * ``covers-dist serve`` runs it standalone against a cluster or a saved run.
 
-See docs/api.md for the endpoints and the JSON shape of observations.
+See docs/guide/api.md for the endpoints and the JSON shape of observations.
 """
 
 from .app import TOKEN_ENV, create_app, resolve_token

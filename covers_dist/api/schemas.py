@@ -1,6 +1,6 @@
 """Request and response models of the HTTP service (pydantic), one section per resource.
 
-Observations travel as JSON in one documented shape (see docs/api.md)::
+Observations travel as JSON in one documented shape (see docs/guide/api.md)::
 
     {"image": {"png_base64": "<base64 of an S x S PNG>"}          # or
               {"shape": [S, S, 3], "data": [S*S*3 integers 0..255, row-major]},
@@ -104,7 +104,7 @@ class PolicySummary(BaseModel):
 
 
 class Merge(BaseModel):
-    """One repaired split: a policy retired into an older one (docs/clustering.md, "A bank that heals")."""
+    """One repaired split: a policy retired into an older one (docs/guide/clustering.md, "A bank that heals")."""
 
     retired: int = Field(description="The policy merged away: never chosen again, its id never reused.")
     into: int = Field(description="The policy that took its frames, episodes and labels.")

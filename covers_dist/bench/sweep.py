@@ -1,6 +1,6 @@
 """``covers-dist bench sweep``: training runs of one task group under variants of a config, side by side.
 
-How the PPO defaults were chosen (docs/learning.md): each ``--variant`` is a list of config
+How the PPO defaults were chosen (docs/research/learning.md): each ``--variant`` is a list of config
 overrides (``"ppo.epochs=4,ppo.minibatch_size=200"``; the empty variant ``""`` is the config as
 given); each variant trains ``--steps`` env steps on a stream of the one ``--task`` under the
 config's group (every episode a transformed copy ``g.T``, ``env.episodes_per_task=1`` so ``g``
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def table(report: dict[str, Any]) -> str:
-    """The runs as a markdown table (what docs/learning.md records)."""
+    """The runs as a markdown table (what docs/research/learning.md records)."""
     lines = [
         f"{report['task']} under {report['group']}, {report['steps']} env steps per run ({report['config']})",
         "",

@@ -1,7 +1,7 @@
 """Policy assignment: distances between feature sets, the policy bank, assignment, metrics.
 
 Plain Python (numpy, POT, scikit-learn; no torch, Ray or FastAPI): the clustering actor hosts a
-:class:`PolicyBank`, serial code and tests call it directly. See docs/clustering.md.
+:class:`PolicyBank`, serial code and tests call it directly. See docs/guide/clustering.md.
 """
 
 from .assignment import DECISIONS, RULES, AssignmentRecord, decide, decide_calibrated

@@ -11,7 +11,7 @@ Episodes: an observation batch ``O`` holds the first ``k = initial_frames`` fram
 caller, or numbered by the bank from 0); their true group ids, when given, feed the metrics only.
 
 Decision rules (``rule``): ``threshold`` (the paper's fixed ``d_eps``) or ``calibrated`` (a
-per-policy permutation test, :meth:`PolicyBank.calibrated_distances`; docs/clustering.md, "Two
+per-policy permutation test, :meth:`PolicyBank.calibrated_distances`; docs/guide/clustering.md, "Two
 decision rules").
 """
 

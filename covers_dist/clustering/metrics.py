@@ -108,7 +108,7 @@ def calibration_tail(records: Sequence[Any]) -> dict[str, Any] | None:
     """The calibrated rule's tail over a run's assignment records (None when no record was made by
     the calibrated rule).
 
-    Each permutation test draws null splits until acceptance is settled (docs/clustering.md). For
+    Each permutation test draws null splits until acceptance is settled (docs/guide/clustering.md). For
     the test of a batch's *own* policy, the event "no null draw reached the observed distance in
     the first ``k - 1`` draws" has probability ``1 / k`` when the batch's frames are exchangeable
     with the buffer's (the premise of the rule's exact false-split rate), and a rejection is that

@@ -1,6 +1,6 @@
 """``covers-dist results``: results as files, and the docs' tables made from them.
 
-    covers-dist results                    # rewrite the generated tables and docs/configuration.md
+    covers-dist results                    # rewrite the generated tables and docs/guide/configuration.md
     covers-dist results --check            # change nothing; exit 1 naming each stale file
     covers-dist results summarize RUN_DIR --role report --out docs/results/stream/NAME.json
     covers-dist results table stream docs/results/stream/*.json   # print one table

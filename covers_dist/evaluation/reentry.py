@@ -19,7 +19,7 @@ the stream.
 
 :func:`value_fit` reads the PPO updates' statistics in ``metrics.jsonl`` per group: an iteration's
 row carries the statistics of the update of its own batch, or with ``runtime.pipeline`` of the
-previous iteration's batch (docs/runtime.md, "Pipelining"); the row names that batch
+previous iteration's batch (docs/guide/runtime.md, "Pipelining"); the row names that batch
 (``ppo/batch_iteration``; older logs: ``lag``), and a batch belongs to a group when all its
 episodes are that group's. The median explained variance of the value function
 over a group's updates says how well the critic fits that group's returns: a shared network's one

@@ -204,7 +204,7 @@ def calibration_tail_section(tail: dict[str, Any] | None) -> list[str]:
         f"{tail['tests']} tests of a batch's own policy ({tail['skipped']} left out: decided by the threshold or "
         f"not recorded in full); {splits}. A row counts the tests in which none of the first k - 1 null draws "
         "reached the observed distance: 1 / k of them if the batch's frames are exchangeable with the buffer's. "
-        "Counts well above that at large k mean more false splits than the rate (docs/clustering.md).",
+        "Counts well above that at large k mean more false splits than the rate (docs/guide/clustering.md).",
         "",
         markdown_table(["k", "tests", "expected (tests / k)", "ratio"], rows),
     ]

@@ -1,6 +1,6 @@
 """The PPO learner: episodes in, one PPO update of an actor-critic out (pure torch, no Ray).
 
-:meth:`PPOLearner.update` takes episodes in the format of docs/architecture.md, computes GAE per
+:meth:`PPOLearner.update` takes episodes in the format of docs/guide/architecture.md, computes GAE per
 episode (:func:`covers_dist.ppo.gae.compute_gae`, on rewards times ``reward_scale``, divided with
 ``reward_norm: return`` by the running standard deviation of the discounted return), then runs
 ``epochs`` passes of shuffled minibatches of the clipped objective
@@ -28,7 +28,7 @@ Episodes acted by another network (``update(..., reevaluate=...)``, the runtime'
 another policy than the one it was assigned to) first have their ``logprob`` and ``value``
 recomputed by this learner's model (:meth:`PPOLearner.reevaluate`): GAE then uses this network's
 values, on its own return scale, and the ratio's old log-prob is this network's, so the first
-minibatch is on-policy. Other episodes are used as stored (docs/learning.md, "A batch acted by
+minibatch is on-policy. Other episodes are used as stored (docs/research/learning.md, "A batch acted by
 another policy").
 """
 

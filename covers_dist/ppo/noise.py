@@ -10,7 +10,7 @@ the sequence of one episode with a power spectrum ``1 / f**beta``: ``beta = 0`` 
 "Pink Noise Is All You Need", ICLR 2023, found pink noise a good default for continuous control).
 
 Coloured noise helps a policy find a success that lies off its mean's path and can slow one whose
-success asks for precision (docs/learning.md); :func:`faded_beta` lets the colour fade to white
+success asks for precision (docs/research/learning.md); :func:`faded_beta` lets the colour fade to white
 as a policy's own training episodes succeed, so one setting can serve both.
 
 Plain module: torch only, no runtime imports.

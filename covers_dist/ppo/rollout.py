@@ -1,6 +1,6 @@
 """A serial episode collector: run a policy on a few gymnasium envs in lockstep, in one process.
 
-It produces episodes in the format of docs/architecture.md (the distributed rollout workers
+It produces episodes in the format of docs/guide/architecture.md (the distributed rollout workers
 produce the same), batching the policy's inference over the envs that are still running. It is
 what the learning tests and the learner benchmark use; the runtime has its own workers.
 

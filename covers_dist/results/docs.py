@@ -1,4 +1,4 @@
-"""The generated parts of the docs: result tables between markers, and docs/configuration.md.
+"""The generated parts of the docs: result tables between markers, and docs/guide/configuration.md.
 
 A generated table sits between two comment lines that say how it is made::
 
@@ -7,7 +7,7 @@ A generated table sits between two comment lines that say how it is made::
     <!-- /table -->
 
 The first word after ``table:`` is the table kind (:data:`~covers_dist.results.tables.KINDS`),
-the rest its files (globs, sorted), relative to the repository root. docs/configuration.md is
+the rest its files (globs, sorted), relative to the repository root. docs/guide/configuration.md is
 written whole from the config's own field docs (:func:`covers_dist.config.reference`).
 """
 
@@ -23,7 +23,7 @@ from .tables import KINDS
 
 OPEN = re.compile(r"^<!-- table: (?P<spec>.+?) -->$")
 CLOSE = "<!-- /table -->"
-CONFIG_REFERENCE = "docs/configuration.md"
+CONFIG_REFERENCE = "docs/guide/configuration.md"
 
 
 def render(spec: str, root: str | Path) -> str:
@@ -68,7 +68,7 @@ def _code(text: str) -> str:
 
 
 def configuration_reference() -> str:
-    """docs/configuration.md: every config key with its type, default, range and meaning."""
+    """docs/guide/configuration.md: every config key with its type, default, range and meaning."""
     rows = reference(Config)
     sections: dict[str, list[dict]] = {}
     for r in rows:
@@ -96,7 +96,7 @@ def configuration_reference() -> str:
 
 def documents(root: str | Path) -> list[Path]:
     root = Path(root)
-    return [root / "README.md", *sorted((root / "docs").glob("*.md"))]
+    return [root / "README.md", *sorted((root / "docs").rglob("*.md"))]
 
 
 def update(root: str | Path, check: bool = False) -> list[str]:
@@ -117,5 +117,6 @@ def update(root: str | Path, check: bool = False) -> list[str]:
         if new != old:
             changed.append(str(path.relative_to(root)))
             if not check:
+                path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_text(new)
     return sorted(changed)

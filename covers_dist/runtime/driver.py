@@ -106,7 +106,7 @@ class Trainer:
         comes first, from the episodes' first frames, and the assigned policy acts. Pipelined
         (``runtime.pipeline``), the update submitted by the previous iteration finishes while this
         one samples and is published before this assignment; this iteration's update is left
-        running, and the row reports the previous update's statistics (docs/runtime.md,
+        running, and the row reports the previous update's statistics (docs/guide/runtime.md,
         "Pipelining").
         """
         plan = self._plan()  # which task and transform each worker runs: the policy is not told

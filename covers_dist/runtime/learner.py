@@ -104,7 +104,7 @@ class PolicyLearner:
         flat = _resolve(episodes)
         # a batch acted by another policy (assigned after it was acted, clustering.assign_at:
         # iteration) gets this policy's log-probs and values before its update; one acted by this
-        # policy at an older version is used as stored (docs/learning.md, "A batch acted by another policy")
+        # policy at an older version is used as stored (docs/research/learning.md, "A batch acted by another policy")
         other = [ep.get("policy_id") is not None and int(ep["policy_id"]) != self.policy_id for ep in flat]
         threads = torch.get_num_threads()
         torch.set_num_threads(learner_threads(self.cfg))

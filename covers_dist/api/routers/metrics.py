@@ -76,7 +76,7 @@ async def metrics_prometheus(state: ApiState = Depends(api_state)) -> Response:
 
 
 class TrainingCollector(Collector):
-    """Training metrics read from the latest snapshot at scrape time (names and types: docs/api.md).
+    """Training metrics read from the latest snapshot at scrape time (names and types: docs/guide/api.md).
 
     Running counts are counters (``_total``; take ``rate()`` for speeds), levels are gauges, rates of
     success are ``_ratio`` gauges in 0..1, ids are labels (``covers_current_policy_info``)."""
