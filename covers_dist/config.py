@@ -68,7 +68,7 @@ METAWORLD_MAX_PATH_LENGTH = 500
 #: Per-metric default thresholds d_eps, in units of the buffer's feature spread (clustering.feature_norm
 #: "buffer"; the Mahalanobis distance is scale-free). Paper (raw trained features): W1 1.0, Euclidean
 #: 0.3-0.7, Mahalanobis 3-7; these values sit in the measured gap between same-group and other-group
-#: distances on the toy stream (docs/guide/clustering.md).
+#: distances on the toy stream (docs/research/clustering.md).
 DEFAULT_THRESHOLDS: dict[str, float] = {"wasserstein": 1.0, "euclidean": 0.8, "mahalanobis": 10.0}
 
 
@@ -330,7 +330,7 @@ class ClusteringConfig:
     feature_source: Literal["joint", "own", "shared", "colors"] = _f(
         "joint",
         "joint = every policy's own invariant encoder output, unit length, side by side: one learned space "
-        "for every comparison (docs/guide/clustering.md, 'Feature sources'); own = each policy's own encoder for "
+        "for every comparison (docs/guide/clustering.md, 'Feature source and normalization'); own = each policy's own encoder for "
         "its own buffer (the paper's); shared = one frozen untrained encoder; colors = a fixed colour "
         "histogram of the frame (hand-designed, no learning; an ablation).",
     )

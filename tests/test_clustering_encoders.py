@@ -6,7 +6,7 @@ are not invariant, and it sees a transformed copy about as far away as another t
 
 The encoders are untrained and as wide as ``NET`` (8/16/16/32 regular fields, 64 invariant
 features): at the narrower default width an untrained encoder separates the toy groups only on
-some seeds (docs/guide/clustering.md has both ARI tables).
+some seeds (docs/research/clustering.md has both ARI tables).
 """
 
 from __future__ import annotations

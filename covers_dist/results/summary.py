@@ -69,6 +69,28 @@ def group_results(ev: dict[str, Any], key: str = "greedy/agnostic") -> dict[str,
     return summary
 
 
+def stop_reason(cfg: dict[str, Any], rows: list[dict[str, Any]], passes: list[dict[str, Any]]) -> str:
+    """Why training ended: ``budget`` (the env-step budget), ``held`` (every evaluated pair at
+    ``eval.stop_at`` on the last ``eval.held`` stop passes), ``time limit``, or ``other``."""
+    steps, minutes = rows[-1]["env_steps"], training_minutes(rows)
+    if steps >= cfg["runtime"]["total_env_steps"]:
+        return "budget"
+    ev = cfg.get("eval", {})
+    stop_at, held = ev.get("stop_at"), int(ev.get("held", 2) or 2)
+    stops = [p for p in passes if p.get("split") == "stop"]
+    if stop_at is not None and len(stops) >= held:
+        def ok(p: dict[str, Any]) -> bool:
+            got = [r["results"].get("greedy/agnostic") for r in p["pairs"] if r["status"] != "held_out"]
+            return bool(got) and all(g is not None and g["success"] >= stop_at for g in got)
+
+        if all(ok(p) for p in stops[-held:]) and stops[-1]["env_steps"] >= steps - 1:
+            return "held"
+    limit = cfg["runtime"].get("time_limit_minutes")
+    if limit and minutes >= 0.98 * limit:
+        return "time limit"
+    return "other"
+
+
 def summarize(run_dir: str | Path, role: str, label: str | None = None, commit: str | None = None) -> dict[str, Any]:
     """The result file of the run in ``run_dir`` (see the module doc)."""
     run_dir = Path(run_dir)
@@ -107,6 +129,9 @@ def summarize(run_dir: str | Path, role: str, label: str | None = None, commit: 
         "seed": cfg["seed"],
         "role": role,
         "commit": commit,
+        "suite": cfg["env"]["suite"],
+        "tasks": list(cfg["env"]["tasks"]),
+        "group": cfg["env"]["group"],
         "feature_source": cfg["clustering"]["feature_source"],
         "palette": cfg["env"].get("palette", "task"),
         "cpu": next((s["cpu"] for s in starts if s.get("cpu")), None) or cpu_model(),
@@ -115,6 +140,7 @@ def summarize(run_dir: str | Path, role: str, label: str | None = None, commit: 
             "minutes": cfg["runtime"].get("time_limit_minutes"),
         },
         "env_steps": last["env_steps"],
+        "stopped": stop_reason(cfg, rows, passes),
         "training_minutes": round(training_minutes(rows), 1),
         "policies": last.get("num_policies"),
         "policies_created": created or last.get("num_policies"),

@@ -3,6 +3,7 @@
 Each kind takes the paths of its files and returns one table (a string ending in a newline):
 
 - ``stream``: run result files (:func:`~covers_dist.results.summary.summarize`), one row a run;
+- ``headline``: the same files, one row per run label over its seeds (the README's table);
 - ``features`` and ``distances``: ``covers-dist bench features --json`` output (JSON lines);
 - ``assign``: ``covers-dist bench assign --stream --json`` rows;
 - ``ablate``: ``covers-dist bench ablate --json`` output (its cell rows).
@@ -43,7 +44,7 @@ def stream(paths: list[str]) -> str:
             raise ResultError(f"{p}: not a run result file (no report.groups)")
     tasks = list(dict.fromkeys(t for d in data for t in d["report"]["groups"]))
     head = ["run", "seed (role)", *[f"{t} mean / worst / held-out" for t in tasks], "policies (created)", "ARI",
-            "env steps", "minutes", "episodes per pair"]  # fmt: skip
+            "env steps (stopped by)", "minutes", "episodes per pair"]  # fmt: skip
     body = []
     for d in data:
         cells = []
@@ -52,8 +53,55 @@ def stream(paths: list[str]) -> str:
             cells.append("" if g is None else f"{_f(g['mean'])} / {_f(g['worst'])} / {_f(g['held_out_worst'])}")
         body.append([
             d["label"], f"{d['seed']} ({d['role']})", *cells, f"{d['policies']} ({d['policies_created']})",
-            _f(d["ari"], 3), f"{d['env_steps']:,}", f"{d['training_minutes']:.1f}", str(d["report"]["episodes_per_pair"]),
+            _f(d["ari"], 3), f"{d['env_steps']:,} ({d.get('stopped', 'n/a')})", f"{d['training_minutes']:.1f}", str(d["report"]["episodes_per_pair"]),
         ])  # fmt: skip
+    return _table(head, body)
+
+
+def _steps(n: float) -> str:
+    return f"{n / 1e6:.2f}M" if n >= 1e6 else f"{n / 1e3:.0f}k"
+
+
+def _span(values: list[float], fmt: Callable[[float], str]) -> str:
+    lo, hi = min(values), max(values)
+    return fmt(lo) if fmt(lo) == fmt(hi) else f"{fmt(lo)}-{fmt(hi)}"
+
+
+def headline(paths: list[str]) -> str:
+    """One row per run label over its seeds: the README's results table. Per label: the mean
+    success over every trainable (task, g) and seed, the worst pair, how many seeds held every
+    trainable and held-out pair >= 0.9, policies and ARI, the budget, env steps and minutes used."""
+    data = [json.loads(Path(p).read_text()) for p in paths]
+    by_label: dict[str, list[dict[str, Any]]] = {}
+    for p, d in zip(paths, data):
+        if "report" not in d or "groups" not in d["report"]:
+            raise ResultError(f"{p}: not a run result file (no report.groups)")
+        by_label.setdefault(d["label"], []).append(d)
+    body = []
+    for label, runs in by_label.items():
+        pairs = [q for d in runs for g in d["report"]["groups"].values() for q in g["pairs"]["trainable"]]
+        held = [q for d in runs for g in d["report"]["groups"].values() for q in g["pairs"]["held_out"]]
+        mean = sum(q["success"] for q in pairs) / len(pairs)
+        worst = min(q["success"] for q in pairs + held)
+        solved = sum(
+            all(q["success"] >= 0.9 for g in d["report"]["groups"].values() for q in g["pairs"]["trainable"] + g["pairs"]["held_out"])
+            for d in runs
+        )
+        roles = sorted({d["role"] for d in runs})
+        budget = runs[0]["budget"]
+        limit = f"{_steps(budget['env_steps'])} env steps" + (f" or {budget['minutes']:g} min" if budget.get("minutes") else "")
+        tasks = runs[0]["tasks"]
+        what = f"{len(tasks)} groups under {runs[0]['group']}" if len(tasks) > 1 else f"{tasks[0]} under {runs[0]['group']}"
+        body.append([
+            label, what,
+            f"mean {mean:.2f}, worst (task, g) {worst:.2f}; every pair >= 0.9 on {solved} of {len(runs)} seeds",
+            f"{_span([d['policies'] for d in runs], str)} policies, ARI {_span([d['ari'] for d in runs], lambda v: f'{v:.2f}')}",
+            f"{', '.join(str(d['seed']) for d in runs)} ({'/'.join(roles)})",
+            limit,
+            f"{_span([d['env_steps'] for d in runs], _steps)}, {_span([d['training_minutes'] for d in runs], lambda v: f'{v:.0f}')} min",
+            "; ".join(sorted({d["cpu"] for d in runs})),
+        ])  # fmt: skip
+    head = ["run", "task", "greedy success (report split)", "bank", "seeds (role)", "budget", "used", "CPU"]
     return _table(head, body)
 
 
@@ -106,6 +154,7 @@ def ablate(paths: list[str]) -> str:
 
 
 KINDS: dict[str, Callable[[list[str]], str]] = {
+    "headline": headline,
     "stream": stream,
     "features": features,
     "distances": distances,
