@@ -118,8 +118,18 @@ def test_summarize_gives_every_pair_with_its_n(finished_run, tmp_path, capsys):
     pairs = [p for g in result["report"]["groups"].values() for kind in ("trainable", "held_out") for p in g["pairs"][kind]]
     assert pairs and all(p["n"] == 2 and 0 <= p["successes"] <= 2 for p in pairs)
     assert sum(len(g["pairs"]["held_out"]) for g in result["report"]["groups"].values()) == 2
+    assert result["stopped"] == "budget" and result["tasks"] == ["reach", "push", "avoid"]
     table = render(f"stream {out.relative_to(tmp_path)}", tmp_path)
-    assert table.count("\n") == 3 and "| smoke | 0 (report) |" in table
+    assert table.count("\n") == 3 and "| smoke | 0 (report) |" in table and "(budget) |" in table
+    # the headline table: one row per label over its seeds
+    second = json.loads(out.read_text()) | {"seed": 1, "role": "tuning"}
+    (tmp_path / "r2.json").write_text(json.dumps(second))
+    head = render("headline r.json r2.json", tmp_path)
+    assert head.count("\n") == 3 and "| smoke | 3 groups under D4 |" in head and "| 0, 1 (report/tuning) |" in head
+    mean = sum(p["success"] for g in result["report"]["groups"].values() for p in g["pairs"]["trainable"]) / sum(
+        len(g["pairs"]["trainable"]) for g in result["report"]["groups"].values()
+    )
+    assert f"mean {mean:.2f}" in head and "| 400 env steps |" in head
     # without --commit, the run's own provenance gives it (where the code ran from a git checkout)
     recorded = read_starts(finished_run)[0]["commit"]
     if recorded:

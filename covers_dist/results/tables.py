@@ -59,7 +59,9 @@ def stream(paths: list[str]) -> str:
 
 
 def _steps(n: float) -> str:
-    return f"{n / 1e6:.2f}M" if n >= 1e6 else f"{n / 1e3:.0f}k"
+    if n >= 1e6:
+        return f"{n / 1e6:.2f}M"
+    return f"{n / 1e3:.1f}k" if n >= 1e3 else f"{n:g}"
 
 
 def _span(values: list[float], fmt: Callable[[float], str]) -> str:
