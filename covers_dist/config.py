@@ -451,7 +451,7 @@ class RuntimeConfig:
         0,
         "torch intra-op threads per learner; 0 (auto): runtime.learner_num_cpus rounded up where the learner "
         "reserves cores, else 1 (it shares the cores with the rollout workers: on 2 cores a second thread made "
-        "the pipelined loop slower, docs/guide/runtime.md; on a CPU without native bf16, whose fp32 update outlasts "
+        "the pipelined loop slower, docs/research/runtime.md; on a CPU without native bf16, whose fp32 update outlasts "
         "sampling, 2 sped up `bench train` but slowed the demo, whose evaluation passes use the idle core: run F).",
         min=0,
     )

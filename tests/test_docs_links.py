@@ -15,8 +15,8 @@ def pages() -> list[Path]:
 
 
 def slug(heading: str) -> str:
-    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces to hyphens."""
-    text = re.sub(r"[`*_]", "", heading.strip().lower())
+    """GitHub's anchor of a heading: lower case, punctuation but - and _ dropped, spaces to hyphens."""
+    text = re.sub(r"[`*]", "", heading.strip().lower())
     text = re.sub(r"[^\w\- ]", "", text)
     return text.replace(" ", "-")
 
@@ -52,3 +52,4 @@ def test_every_relative_link_resolves():
 def test_the_slugs_follow_github():
     assert slug("Checkpoints, resume and failures") == "checkpoints-resume-and-failures"
     assert slug("`covers-dist bench train`: the loop") == "covers-dist-bench-train-the-loop"
+    assert slug("`runtime.learners_per_process`") == "runtimelearners_per_process"

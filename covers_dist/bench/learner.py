@@ -15,7 +15,7 @@ largest relative equivariance error of each output over the group's elements (tr
 exported inference paths; the CNN twin for contrast) on real observations of the suite.
 
 Targets: equivariant update throughput >= 0.5 x the CNN twin's, and inference at the worker batch
->= the env steps/s (so inference is not the rollout bottleneck). Results: docs/guide/models.md.
+>= the env steps/s (so inference is not the rollout bottleneck). Results: docs/research/models.md.
 """
 
 from __future__ import annotations

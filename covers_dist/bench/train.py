@@ -222,7 +222,7 @@ COVERS_SETTINGS = {  # name: (rollout workers, overrides)
     "covers_2w_sequential": (2, ["runtime.pipeline=false"]),
     # the learner on two torch threads beside the workers (auto gives a learner without cores of its
     # own one): a core idles while the driver waits for an update longer than its sampling (an fp32
-    # update on a CPU without native bf16), docs/guide/runtime.md run F
+    # update on a CPU without native bf16), docs/research/runtime.md run F
     "covers_2w_2threads": (2, ["runtime.learner_threads=2"]),
     # the coarser stem (4x4 pixel blocks folded into channels: ~2.4x the equivariant update on an
     # AVX2 CPU, bench learner): what the loop gains end to end where the update is the longer phase

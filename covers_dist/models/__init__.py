@@ -2,7 +2,7 @@
 
 :func:`build_actor_critic` is the one factory; both kinds share the :class:`ActorCritic`
 interface (forward, features, evaluate_actions, act, features_np, get_weights / set_weights).
-See docs/guide/models.md for the design, the equivariance checks and the measured throughput.
+See docs/guide/models.md for the design and docs/research/models.md for the equivariance checks and the measured throughput.
 """
 
 from __future__ import annotations
