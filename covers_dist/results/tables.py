@@ -100,7 +100,8 @@ def headline(paths: list[str]) -> str:
             f"{_span([d['policies'] for d in runs], str)} policies, ARI {_span([d['ari'] for d in runs], lambda v: f'{v:.2f}')}",
             f"{', '.join(str(d['seed']) for d in runs)} ({'/'.join(roles)})",
             limit,
-            f"{_span([d['env_steps'] for d in runs], _steps)}, {_span([d['training_minutes'] for d in runs], lambda v: f'{v:.0f}')} min",
+            f"{_span([d['env_steps'] for d in runs], _steps)}, {_span([d['training_minutes'] for d in runs], lambda v: f'{v:.0f}')} min "
+            f"(stopped by: {', '.join(sorted({d.get('stopped', 'n/a') for d in runs}))})",
             "; ".join(sorted({d["cpu"] for d in runs})),
         ])  # fmt: skip
     head = ["run", "task", "greedy success (report split)", "bank", "seeds (role)", "budget", "used", "CPU"]
