@@ -13,7 +13,9 @@ combination raise :class:`ConfigError` with the dotted path and the bad value.
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -51,6 +53,20 @@ STORAGE_SCHEMES = ("file", "s3", "gs", "gcs", "hdfs", "abfs", "abfss")
 
 class ConfigError(ValueError):
     """A configuration value is missing, unknown, mistyped or inconsistent."""
+
+
+_HOST_LABEL = re.compile(r"^(?!-)[A-Za-z0-9-]{1,63}(?<!-)$")
+
+
+def valid_host(host: str) -> bool:
+    """Whether ``host`` is an IPv4/IPv6 address or a DNS host name (RFC 1123 labels) to bind or name."""
+    try:
+        ipaddress.ip_address(host)
+        return True
+    except ValueError:
+        pass
+    name = host[:-1] if host.endswith(".") else host
+    return 0 < len(name) <= 253 and all(_HOST_LABEL.match(label) for label in name.split("."))
 
 
 def _f(default: Any, doc: str, **kw: Any) -> Any:
@@ -500,7 +516,7 @@ class RuntimeConfig:
 @dataclass(frozen=True)
 class ApiConfig:
     enabled: bool = _f(False, "Start the HTTP service next to training.")
-    host: str = _f("127.0.0.1", "Bind address (loopback unless configured).")
+    host: str = _f("127.0.0.1", "Bind address: an IPv4 or IPv6 address or a host name (loopback unless configured).")
     port: int = _f(8000, "TCP port.", min=0, max=65535)
     token: str | None = _f(None, "Bearer token required on every route but health checks (or COVERS_API_TOKEN).")
     max_body_bytes: int = _f(8_000_000, "Largest accepted request body in bytes (larger: 413).", min=1)
@@ -510,6 +526,12 @@ class ApiConfig:
     compute_concurrency: int = _f(
         2, "POST /v1/assignments/what-if and /v1/act calls in flight at once (others wait).", min=1
     )
+
+    def __post_init__(self) -> None:
+        if not valid_host(self.host):
+            raise ConfigError(
+                f"api.host={self.host!r} is not an IP address or a host name (e.g. 127.0.0.1, ::1, localhost, 0.0.0.0)"
+            )
 
 
 EvalMode = Literal["greedy", "stochastic"]
@@ -669,6 +691,9 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
         args = typing.get_args(tp)
         if value is None and type(None) in args:
             return None
+        given = [a for a in args if a is not type(None)]
+        if len(given) == 1:  # ``X | None``: X's own message names what is wrong
+            return _coerce(value, given[0], path)
         errors = []
         for a in args:
             if a is type(None):
@@ -706,6 +731,8 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
                 raise ConfigError(f"{path}: expected a number, got {value!r}") from None
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{path}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{path}: expected a finite number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):

@@ -199,6 +199,30 @@ def test_bad_configs_name_the_field(data, match):
         config_from_dict(data)
 
 
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("ppo.lr=nan", r"ppo.lr: expected a finite number, got nan"),
+        ("ppo.lr=.nan", r"ppo.lr: expected a finite number, got nan"),
+        ("ppo.lr=.inf", r"ppo.lr: expected a finite number, got inf"),
+        ("ppo.lr=-.inf", r"ppo.lr: expected a finite number, got -inf"),
+        ("clustering.threshold=.nan", r"clustering.threshold: expected a finite number, got nan"),
+        ("runtime.time_limit_minutes=.inf", r"runtime.time_limit_minutes: expected a finite number, got inf"),
+        ("api.host=not a host", r"api.host='not a host' is not an IP address or a host name"),
+        ("api.host=-bad-.example", r"api.host='-bad-.example' is not an IP address or a host name"),
+        ("api.host=''", r"api.host='' is not an IP address or a host name"),
+    ],
+)
+def test_non_finite_numbers_and_bad_hosts_are_refused(override, match):
+    with pytest.raises(ConfigError, match=match):
+        load_config(None, [override])
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "::1", "0.0.0.0", "localhost", "api.internal.example", "covers-api"])
+def test_addresses_and_host_names_are_valid_hosts(host):
+    assert load_config(None, [f"api.host={host}"]).api.host == host
+
+
 def test_bad_override_and_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="must look like section.field=value"):
         load_config(None, ["ppo.lr"])
