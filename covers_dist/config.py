@@ -502,11 +502,21 @@ class RuntimeConfig:
         if self.storage is not None and not str(self.storage).strip():
             raise ConfigError("runtime.storage is empty: give a local path, a URI such as s3://bucket/prefix, or null")
         if self.storage is not None and "://" in self.storage:
+            from .storage import redact_uri, uri_credentials
+
             scheme = self.storage.split("://", 1)[0]
+            shown = redact_uri(self.storage.split("?", 1)[0])
             if scheme not in STORAGE_SCHEMES:
                 raise ConfigError(
-                    f"runtime.storage={self.storage.split('?', 1)[0]!r}: unknown scheme {scheme!r}, "
+                    f"runtime.storage={shown!r}: unknown scheme {scheme!r}, "
                     f"expected a local path or one of {', '.join(s + '://' for s in STORAGE_SCHEMES)}"
+                )
+            found = uri_credentials(self.storage)
+            if found:
+                raise ConfigError(
+                    f"runtime.storage={redact_uri(self.storage)!r} carries credentials ({', '.join(found)}), which "
+                    "would be saved with the run's config and shown in its logs: give them in the environment "
+                    "instead (AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY, GOOGLE_APPLICATION_CREDENTIALS, ...)"
                 )
         mb = self.log_rotate_mb
         if mb is not None and (isinstance(mb, bool) or not isinstance(mb, (int, float)) or not mb > 0):
@@ -518,7 +528,14 @@ class ApiConfig:
     enabled: bool = _f(False, "Start the HTTP service next to training.")
     host: str = _f("127.0.0.1", "Bind address: an IPv4 or IPv6 address or a host name (loopback unless configured).")
     port: int = _f(8000, "TCP port.", min=0, max=65535)
-    token: str | None = _f(None, "Bearer token required on every route but health checks (or COVERS_API_TOKEN).")
+    token: str | None = _f(
+        None,
+        "Bearer token required on every route but health checks; never written to config.yaml or checkpoints "
+        "(prefer api.token_file or COVERS_API_TOKEN).",
+    )
+    token_file: str | None = _f(
+        None, "File whose first line is the bearer token (used when api.token is not set; else COVERS_API_TOKEN)."
+    )
     max_body_bytes: int = _f(8_000_000, "Largest accepted request body in bytes (larger: 413).", min=1)
     max_batch: int = _f(256, "Most observations in one POST /v1/assignments/what-if request.", min=1)
     refresh_s: float = _f(0.5, "Seconds between snapshots of the clustering state that the GET endpoints serve.", gt=0.0)
@@ -786,9 +803,18 @@ def config_from_dict(data: dict[str, Any]) -> Config:
     return _build(Config, data, "")
 
 
+#: Fields that hold secrets: :func:`config_to_dict` leaves them out (null), so they never reach a
+#: run's config.yaml, its checkpoints, the storage's copies or an actor's answer.
+SECRET_FIELDS = (("api", "token"),)
+
+
 def config_to_dict(cfg: Any) -> dict[str, Any]:
-    """The config as a plain nested dict (YAML/JSON friendly)."""
-    return dataclasses.asdict(cfg)
+    """The config as a plain nested dict (YAML/JSON friendly), secrets (:data:`SECRET_FIELDS`) null."""
+    data = dataclasses.asdict(cfg)
+    for section, key in SECRET_FIELDS:
+        if isinstance(data.get(section), dict) and key in data[section]:
+            data[section][key] = None
+    return data
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str] | None) -> dict[str, Any]:

@@ -20,7 +20,21 @@ import tarfile
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["Storage", "StorageError", "is_uri", "storage_child", "pack_dir", "unpack_dir"]
+__all__ = [
+    "Storage",
+    "StorageError",
+    "is_uri",
+    "storage_child",
+    "pack_dir",
+    "unpack_dir",
+    "redact_uri",
+    "uri_credentials",
+    "SECRET_PARAMS",
+]
+
+#: Query parameters of a storage URI that carry credentials (pyarrow's S3 and GCS options): never
+#: printed, logged or saved; give credentials in the environment (AWS_ACCESS_KEY_ID, ...) instead.
+SECRET_PARAMS = ("access_key", "secret_key", "session_token", "access_token", "credential_token")
 
 
 class StorageError(RuntimeError):
@@ -30,6 +44,34 @@ class StorageError(RuntimeError):
 def is_uri(location: str) -> bool:
     """Whether ``location`` names a filesystem by scheme (``s3://...``) rather than a local path."""
     return "://" in location
+
+
+def uri_credentials(location: str) -> list[str]:
+    """What in ``location`` is a credential: ``user:password@`` before the host, and any query
+    parameter of :data:`SECRET_PARAMS` (their names only; empty for a URI that carries none)."""
+    if not is_uri(location):
+        return []
+    from urllib.parse import parse_qsl, urlsplit
+
+    parts = urlsplit(location)
+    found = ["user:password@"] if "@" in parts.netloc else []
+    return found + [k for k, _ in parse_qsl(parts.query, keep_blank_values=True) if k.lower() in SECRET_PARAMS]
+
+
+def redact_uri(location: str) -> str:
+    """``location`` for messages and logs: credentials before the host and secret query values
+    replaced by ``***`` (the rest of the query, an endpoint say, kept)."""
+    if not uri_credentials(location):
+        return location
+    from urllib.parse import parse_qsl, urlsplit, urlunsplit
+
+    parts = urlsplit(location)
+    netloc = f"***@{parts.netloc.rsplit('@', 1)[1]}" if "@" in parts.netloc else parts.netloc
+    query = "&".join(
+        f"{k}=***" if k.lower() in SECRET_PARAMS else f"{k}={v}"
+        for k, v in parse_qsl(parts.query, keep_blank_values=True)
+    )
+    return urlunsplit((parts.scheme, netloc, parts.path, query, parts.fragment))
 
 
 class Storage:
@@ -45,7 +87,7 @@ class Storage:
             try:
                 self.fs, root = pafs.FileSystem.from_uri(location)
             except Exception as e:  # noqa: BLE001 - pyarrow raises ArrowInvalid, OSError or ValueError here
-                raise StorageError(f"cannot open storage {_without_query(location)}: {e}") from e
+                raise StorageError(f"cannot open storage {_without_query(location)}: {_scrub(str(e), location)}") from None
         else:
             self.fs, root = pafs.LocalFileSystem(), os.path.abspath(location)
         self.location = location
@@ -150,7 +192,25 @@ def storage_child(location: str, name: str) -> str:
 
 
 def _without_query(location: str) -> str:
-    return location.split("?", 1)[0]
+    """``location`` without its query (which may hold an endpoint) or credentials before the host."""
+    return redact_uri(location.split("?", 1)[0])
+
+
+def _scrub(message: str, location: str) -> str:
+    """``message`` (a filesystem library's error about ``location``) with every credential the
+    location carries replaced by ``***``."""
+    from urllib.parse import parse_qsl, unquote, urlsplit
+
+    if not uri_credentials(location):
+        return message
+    parts = urlsplit(location)
+    secrets_ = [v for k, v in parse_qsl(parts.query) if k.lower() in SECRET_PARAMS]
+    if "@" in parts.netloc:
+        userinfo = parts.netloc.rsplit("@", 1)[0]
+        secrets_ += [userinfo, unquote(userinfo), *userinfo.split(":", 1), *unquote(userinfo).split(":", 1)]
+    for secret in sorted({s for s in secrets_ if s}, key=len, reverse=True):
+        message = message.replace(secret, "***")
+    return message
 
 
 def pack_dir(directory: str | Path) -> bytes:

@@ -104,6 +104,40 @@ def test_sigterm_checkpoints_after_the_iteration_and_the_resumed_run_ends_as_the
     assert [r.get("ppo/policy_loss") for r in rows] == [r.get("ppo/policy_loss") for r in unbroken]
 
 
+def _tree(root):
+    """{relative path: bytes} of every file under ``root``."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_resume_continues_in_the_directory_given_and_leaves_the_original_alone(tiny_serial_run, tmp_path):
+    """A run stopped after 2 of 4 iterations is copied elsewhere (its local storage inside it) and the
+    copy resumed by `train --resume COPY`: the copy ends where the unbroken run ends, its saved config
+    names the copy, and not one byte of the original changes."""
+    from covers_dist.runtime.driver import train
+
+    original = tmp_path / "original"
+    cfg = tiny_cfg(original, "runtime.total_env_steps=1600", "runtime.checkpoint_every=100",
+                   f"runtime.storage={original / 'store'}")  # fmt: skip
+    first = Trainer(cfg, log=lambda *_: None)
+    first.on_iteration.append(lambda: first.iteration == 2 and os.kill(os.getpid(), signal.SIGTERM))
+    assert first.run()["status"] == "interrupted"
+    first.close()
+    copy = tmp_path / "moved" / "copy"
+    shutil.copytree(original, copy)
+    before = _tree(original)
+    logs = []
+    assert train(resume_dir=str(copy), log=logs.append)["status"] == "finished"
+    assert _tree(original) == before
+    saved = load_config(copy / "config.yaml")
+    assert saved.runtime.run_dir == str(copy) and saved.runtime.storage == str(copy / "store")
+    rows = [json.loads(line) for line in (copy / "metrics.jsonl").read_text().splitlines()]
+    unbroken = [json.loads(line) for line in (tiny_serial_run[2] / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3, 4]
+    assert [r.get("ppo/policy_loss") for r in rows] == [r.get("ppo/policy_loss") for r in unbroken]
+    assert [c.name for c in list_checkpoints(copy)][-1] == "ckpt-000004"
+    assert any(str(copy) in line for line in logs)
+
+
 def test_resume_continues_with_the_same_bank_and_counters(tmp_path):
     cfg = tiny_cfg(tmp_path, "runtime.total_env_steps=800", "runtime.checkpoint_every=100")
     first = Trainer(cfg, log=lambda *_: None)

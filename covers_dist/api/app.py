@@ -40,8 +40,23 @@ MAX_REPORTED_ERRORS = 10
 
 
 def resolve_token(cfg: Config) -> str | None:
-    """``api.token``, else ``$COVERS_API_TOKEN``, else None (no auth); empty strings mean none."""
-    return cfg.api.token or os.environ.get(TOKEN_ENV) or None
+    """``api.token``, else the first line of ``api.token_file``, else ``$COVERS_API_TOKEN``, else
+    None (no auth); empty strings mean none. A token file that cannot be read, or holds no token,
+    raises :class:`~covers_dist.config.ConfigError` naming it (never its content)."""
+    from ..config import ConfigError
+
+    if cfg.api.token:
+        return cfg.api.token
+    if cfg.api.token_file:
+        try:
+            lines = open(cfg.api.token_file, encoding="utf-8").read().splitlines()  # noqa: SIM115
+        except (OSError, UnicodeDecodeError) as e:
+            raise ConfigError(f"api.token_file={cfg.api.token_file!r} cannot be read ({type(e).__name__})") from None
+        token = lines[0].strip() if lines else ""
+        if not token:
+            raise ConfigError(f"api.token_file={cfg.api.token_file!r} holds no token (its first line is empty)")
+        return token
+    return os.environ.get(TOKEN_ENV) or None
 
 
 def _location(loc: Any) -> str:

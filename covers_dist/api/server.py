@@ -117,8 +117,12 @@ class ApiServerProcess:
     def __init__(self, args: list[str], cfg: Config, env: dict[str, str] | None = None) -> None:
         self._cfg_dir = tempfile.TemporaryDirectory(prefix="covers-api-")
         cfg_file = Path(self._cfg_dir.name) / "config.yaml"
-        cfg_file.write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-        os.chmod(cfg_file, 0o600)  # may hold the token
+        cfg_file.write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))  # holds no token
+        os.chmod(cfg_file, 0o600)
+        from .app import TOKEN_ENV, resolve_token
+
+        token = resolve_token(cfg)  # handed to the child in its environment, never in a file
+        env = {**(env or {}), **({TOKEN_ENV: token} if token else {})}
         self.cmd = [sys.executable, "-m", "covers_dist", "serve", *args, "--config", str(cfg_file)]
         self.url = ""
         self.output: list[str] = []

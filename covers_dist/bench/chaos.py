@@ -103,7 +103,7 @@ def final_state(run_dir: Path) -> dict[str, Any]:
     """Assignments, logged episode indices and policy weights of a finished run (newest checkpoint)."""
     import torch
 
-    from ..runtime.checkpoint import latest_valid_checkpoint
+    from ..runtime.checkpoint import latest_valid_checkpoint, load_state
     from ..runtime.clustering_service import ClusteringService
     from ..runtime.logfiles import read_jsonl_segments
 
@@ -115,7 +115,7 @@ def final_state(run_dir: Path) -> dict[str, Any]:
     service.load(str(ckpt / "bank"))
     records = service.assignments(0, 10**9)
     weights = {
-        int(f.stem.split("-")[1]): torch.load(f, weights_only=False)["ppo"]["model"]
+        int(f.stem.split("-")[1]): load_state(f, str(f))["ppo"]["model"]
         for f in sorted((ckpt / "learners").glob("policy-*.pt"))
     }
     logged = [int(r["episode_index"]) for r in read_jsonl_segments(run_dir, "episodes.jsonl")]

@@ -6,7 +6,7 @@
   training job on that Ray cluster.
 
 Binds to api.host:api.port (127.0.0.1:8000 unless configured); the bearer token comes from
-api.token or $COVERS_API_TOKEN. Stops on SIGINT/SIGTERM.
+api.token, api.token_file or $COVERS_API_TOKEN. Stops on SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def _config(args: argparse.Namespace):  # noqa: ANN202
         raise SystemExit(f"covers-dist serve: {args.run_dir} is not a run directory (no config.yaml)")
     data = config_to_dict(load_run_config(run_cfg))
     if args.config is not None:
-        data["api"] = config_to_dict(load_config(args.config)).get("api", data["api"])
+        data["api"] = dataclasses.asdict(load_config(args.config).api)  # its token too, if it sets one
     bad = [o for o in overrides if not o.strip().startswith("api.")]
     if bad:
         raise ConfigError(f"with --run-dir only api.* fields can be set, got {bad}")

@@ -20,8 +20,10 @@ state-dict mode (see ``covers_dist.models``).
 
 from __future__ import annotations
 
+import io
 import json
 import os
+import pickle
 import shutil
 from pathlib import Path
 from typing import Any, Callable
@@ -29,7 +31,14 @@ from typing import Any, Callable
 from ..clustering.persistence import STATE_FILE as BANK_INDEX  # the file every saved bank holds
 from ..clustering.persistence import CheckpointError, file_sha256  # one error type, one hash
 
-__all__ = ["CheckpointError", "write_checkpoint", "latest_valid_checkpoint", "verify_checkpoint", "list_checkpoints"]
+__all__ = [
+    "CheckpointError",
+    "write_checkpoint",
+    "latest_valid_checkpoint",
+    "verify_checkpoint",
+    "list_checkpoints",
+    "load_state",
+]
 
 FORMAT_VERSION = 1
 KEEP = 3
@@ -124,3 +133,29 @@ def latest_valid_checkpoint(run_dir: str | Path, log: Callable[[str], None] = pr
         except CheckpointError as e:
             log(f"warning: {e}; falling back to the previous checkpoint")
     return None
+
+
+def load_state(source: str | Path | bytes, where: str, map_location: Any = "cpu") -> Any:
+    """A learner's or policy's saved state (``torch.save`` of tensors in plain containers), read
+    without running any code the file may carry.
+
+    A run directory and its storage are data, never code: the file is unpickled with
+    ``torch.load(weights_only=True)``, which admits tensors, numbers, strings and the built-in
+    containers only. Anything else (a pickled object, a callable) raises :class:`CheckpointError`
+    naming ``where`` and what was refused, before any of it runs; so does a file that is not a torch
+    file at all.
+    """
+    import torch
+
+    handle = io.BytesIO(source) if isinstance(source, bytes) else source
+    try:
+        return torch.load(handle, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:
+        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+        reason = next((ln for ln in lines if "unsupported" in ln.lower()), lines[0] if lines else type(e).__name__)
+        raise CheckpointError(
+            f"{where} is refused: it is not a torch file of tensors and plain containers ({reason}); "
+            "covers-dist never runs code from a run directory or its storage"
+        ) from None
+    except (RuntimeError, EOFError, OSError, ValueError) as e:
+        raise CheckpointError(f"{where} is unreadable ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else e})") from e

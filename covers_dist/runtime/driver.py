@@ -21,6 +21,7 @@ from the newest valid checkpoint of the run directory.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import signal
@@ -37,6 +38,7 @@ from ..config import Config, config_to_dict, load_run_config
 from ..envs.stream import TaskStream
 from ..ppo.noise import faded_beta
 from ..results.provenance import record_start
+from ..storage import Storage, StorageError, is_uri, redact_uri
 from .checkpoint import latest_valid_checkpoint
 from .clustering_service import SINGLE_POLICY_METHODS
 from .evaluation import PeriodicEvaluation
@@ -321,13 +323,11 @@ def _run_config(resume_dir: str) -> Config:
     """The saved config of the run to resume: ``RUN_DIR/config.yaml``, or, for a storage URI
     (``--resume s3://bucket/run``), the storage's copy (the run directory it names is then
     filled from the storage)."""
-    from ..storage import Storage, StorageError, is_uri
-
     if is_uri(resume_dir):
         try:
             text = Storage(resume_dir).read_bytes("config.yaml")
         except StorageError as e:
-            raise FileNotFoundError(f"{resume_dir.split('?', 1)[0]} holds no run to resume ({e})") from e
+            raise FileNotFoundError(f"{redact_uri(resume_dir.split('?', 1)[0])} holds no run to resume ({e})") from e
         with tempfile.NamedTemporaryFile("wb", suffix=".yaml") as fh:
             fh.write(text)
             fh.flush()
@@ -336,6 +336,32 @@ def _run_config(resume_dir: str) -> Config:
     if not cfg_path.is_file():
         raise FileNotFoundError(f"{resume_dir} is not a run directory (no config.yaml)")
     return load_run_config(cfg_path)
+
+
+def rooted_at(cfg: Config, resume_dir: str, log: Callable[[str], None] = print) -> Config:
+    """The saved config of the run in ``resume_dir`` with that directory as its run directory.
+
+    A run directory may have been moved or copied since it was saved: it is resumed where it is now,
+    never into the ``runtime.run_dir`` its config.yaml names (which may be the original's). A local
+    storage inside the old run directory moves along with it; a storage elsewhere (a URI, or a path
+    outside) is the run's own state and is kept, with a note in the log.
+    """
+    if is_uri(resume_dir):
+        return cfg  # resumed from its storage: the run directory its config names is filled from there
+    here, saved = Path(resume_dir).resolve(), Path(cfg.runtime.run_dir).resolve()
+    if here == saved:
+        return cfg
+    storage = cfg.runtime.storage
+    if storage and not is_uri(storage):
+        local = Path(storage).resolve()
+        if local == saved or saved in local.parents:
+            storage = str(here / local.relative_to(saved))
+        else:
+            log(f"note: {resume_dir} was saved as {saved}; it keeps its storage {storage}")
+    elif storage:
+        log(f"note: {resume_dir} was saved as {saved}; it keeps its storage {redact_uri(storage)}")
+    runtime = dataclasses.replace(cfg.runtime, run_dir=str(here), storage=storage)
+    return dataclasses.replace(cfg, runtime=runtime)
 
 
 def train(
@@ -353,13 +379,13 @@ def train(
     ``check()``, which is called after every iteration (to restart what stopped).
     """
     if resume_dir is not None:
-        cfg = _run_config(resume_dir)
+        cfg = rooted_at(_run_config(resume_dir), resume_dir, log)
     assert cfg is not None
     check_run_dir_outlives_the_job(cfg.runtime.run_dir)
     run_dir = Path(cfg.runtime.run_dir)
     if resume_dir is None and holds_a_run(cfg):
         if not overwrite:
-            storage = cfg.runtime.storage.split("?", 1)[0] if cfg.runtime.storage else None
+            storage = redact_uri(cfg.runtime.storage.split("?", 1)[0]) if cfg.runtime.storage else None
             where = f"{run_dir} (storage {storage})" if storage else str(run_dir)
             raise FileExistsError(
                 f"{where} already holds a run: continue it with --resume {run_dir}, "

@@ -33,6 +33,7 @@ from ..envs import suite_layout
 from ..models import build_actor_critic
 from ..ppo import PPOLearner
 from ..storage import StorageError
+from .checkpoint import CheckpointError, load_state
 from .run_storage import LEARNERS_LIVE, open_storage
 
 __all__ = ["PolicyLearner", "LearnerPool", "policy_seed", "live_state_key", "pool_of"]
@@ -162,12 +163,9 @@ class PolicyLearner:
         except (StorageError, OSError) as e:
             raise RuntimeError(f"the live state {where} cannot be read ({e}); is runtime.storage reachable?") from e
         try:
-            state = torch.load(io.BytesIO(data), weights_only=False, map_location=self.device)
-        except Exception as e:  # noqa: BLE001 - any unreadable file is the same problem
-            raise RuntimeError(
-                f"{where} is unreadable ({type(e).__name__}: {e}); resume the run from its newest "
-                "checkpoint (covers-dist train --resume RUN_DIR)"
-            ) from e
+            state = load_state(data, f"the live state {where}", map_location=self.device)
+        except CheckpointError as e:
+            raise RuntimeError(f"{e}; resume the run from its newest checkpoint (covers-dist train --resume RUN_DIR)") from None
         self._apply_state(state)
         self.results = dict(state.get("results", {}))
         self.restored = True

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import Config, load_run_config
-from .checkpoint import CheckpointError, latest_valid_checkpoint
+from .checkpoint import CheckpointError, latest_valid_checkpoint, load_state
 
 __all__ = ["SavedRun", "load_checkpoint", "load_saved_run", "model_weights", "probe_mismatch"]
 
@@ -88,8 +88,6 @@ def load_saved_run(run_dir: str | Path, log: Any = print) -> SavedRun:
 
 def load_checkpoint(run_dir: str | Path, ckpt: str | Path, log: Any = print) -> SavedRun:
     """The checkpoint directory ``ckpt`` of the run ``run_dir`` (its config, bank and weights), read-only."""
-    import torch
-
     from ..envs import suite_layout
     from ..models import build_actor_critic
     from .clustering_service import ClusteringService
@@ -103,7 +101,7 @@ def load_checkpoint(run_dir: str | Path, ckpt: str | Path, log: Any = print) -> 
     weights, versions = {}, {}
     for f in sorted((ckpt / "learners").glob("policy-*.pt")):
         pid = int(f.stem.split("-", 1)[1])
-        state = torch.load(f, map_location="cpu", weights_only=False)
+        state = load_state(f, str(f))
         weights[pid] = model_weights(state, names, str(f))
         versions[pid] = int(state.get("version", 0)) if isinstance(state, dict) else 0
     service = ClusteringService(cfg, read_only=True)

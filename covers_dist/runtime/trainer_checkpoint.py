@@ -20,7 +20,7 @@ import yaml
 
 from ..config import config_to_dict
 from ..storage import pack_dir, unpack_dir
-from .checkpoint import write_checkpoint
+from .checkpoint import load_state, write_checkpoint
 from .ray_setup import resolve_weights
 from .run_storage import drop_live_state, push_checkpoint
 from .saved_run import probe_mismatch
@@ -95,13 +95,13 @@ def restore_trainer(trainer: Any, path: Path) -> None:
     drop_live_state(trainer.cfg, keep_policies=state["policies"])  # policies created after this checkpoint
     for pid in state["policies"]:
         backend.ensure_learner(pid)
-        learner_state = torch.load(path / "learners" / f"policy-{pid}.pt", weights_only=False)
+        learner_state = load_state(path / "learners" / f"policy-{pid}.pt", str(path / "learners" / f"policy-{pid}.pt"))
         backend.call_learner(pid, "load_state_dict", learner_state)
         weights.learner_versions[pid], newest = backend.call_learner(pid, "weights")
         if pending is not None and pending["policy_id"] == pid:
             # the update in flight when the checkpoint was written: workers keep sampling with
             # the weights before it until the next iteration publishes it, as they would have
-            sampling = torch.load(path / "learners" / f"sampling-{pid}.pt", weights_only=False)
+            sampling = load_state(path / "learners" / f"sampling-{pid}.pt", str(path / "learners" / f"sampling-{pid}.pt"))
             weights.publish(pid, sampling)
             stats = {k.split("/", 1)[1]: v for k, v in pending["stats"].items()}
             weights.pending = (pid, CompletedUpdate(stats, backend.publish(newest)))
