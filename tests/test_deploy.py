@@ -58,7 +58,7 @@ def test_every_kuberay_object_validates_strictly():
     assert kinds.count("RayJob") == 1 and "Service" in kinds
     for doc in docs:
         if doc["apiVersion"] != "ray.io/v1":
-            assert doc["apiVersion"] == "v1" and doc["kind"] == "Service", doc["kind"]
+            assert (doc["apiVersion"], doc["kind"]) in {("v1", "Service"), ("networking.k8s.io/v1", "NetworkPolicy")}
             continue
         errors = sorted(_validator(doc["kind"]).iter_errors(doc), key=lambda e: list(e.path))
         assert not errors, [f"{'/'.join(map(str, e.path))}: {e.message}" for e in errors[:5]]
@@ -120,6 +120,54 @@ def test_the_manifest_gives_what_the_run_needs():
         (container,) = pod["containers"]
         assert {"secretRef": {"name": "covers-s3"}} in container.get("envFrom", []), container["name"]
         assert not any("persistentVolumeClaim" in v for v in pod.get("volumes", []))
+
+
+def _env_names(container):
+    return {e["name"] for e in container.get("env", [])} | {
+        f"secret:{ref['secretRef']['name']}" for ref in container.get("envFrom", []) if "secretRef" in ref
+    }
+
+
+def test_only_the_runs_own_pods_can_drive_the_cluster():
+    """Ray's token authentication is on from a Secret (every Ray container by authOptions, the
+    submitter by its own env), the dashboard binds beyond the pod only with it, a NetworkPolicy
+    admits only the run's pods (and the API's clients on the API port), and each secret reaches
+    only the pods that use it: the storage's the Ray nodes, the API token the head."""
+    docs = _documents()
+    job = next(d for d in docs if d["kind"] == "RayJob")
+    spec = job["spec"]["rayClusterSpec"]
+    assert spec["authOptions"] == {"mode": "token", "secretName": "covers-ray"}
+    head = spec["headGroupSpec"]
+    if head["rayStartParams"].get("dashboard-host", "127.0.0.1") not in ("127.0.0.1", "localhost"):
+        assert spec["authOptions"]["mode"] == "token"
+
+    submitter = job["spec"]["submitterPodTemplate"]
+    (sub,) = submitter["spec"]["containers"]
+    env = {e["name"]: e for e in sub["env"]}
+    assert env["RAY_AUTH_MODE"]["value"] == "token"
+    assert env["RAY_AUTH_TOKEN"]["valueFrom"]["secretKeyRef"] == {"name": "covers-ray", "key": "auth_token"}
+    assert _env_names(sub) == {"RAY_AUTH_MODE", "RAY_AUTH_TOKEN"}  # no storage credentials, no API token
+
+    label = {"covers-dist/run": job["metadata"]["name"]}
+    templates = [head["template"], *(g["template"] for g in spec["workerGroupSpecs"]), submitter]
+    for template in templates:
+        assert template["metadata"]["labels"].items() >= label.items()
+    (head_container,) = head["template"]["spec"]["containers"]
+    assert {"COVERS_API_TOKEN", "secret:covers-s3"} <= _env_names(head_container)
+    for group in spec["workerGroupSpecs"]:
+        (container,) = group["template"]["spec"]["containers"]
+        assert "secret:covers-s3" in _env_names(container) and "COVERS_API_TOKEN" not in _env_names(container)
+
+    (policy,) = [d for d in docs if d["kind"] == "NetworkPolicy"]
+    assert policy["spec"]["podSelector"]["matchLabels"] == label and policy["spec"]["policyTypes"] == ["Ingress"]
+    rules = policy["spec"]["ingress"]
+    assert all(len(rule["from"]) == 1 and set(rule["from"][0]) == {"podSelector"} for rule in rules)  # no ipBlock
+    own = [r for r in rules if r["from"][0]["podSelector"]["matchLabels"] == label]
+    assert len(own) == 1 and "ports" not in own[0]
+    clients = [r for r in rules if r not in own]
+    service = next(d for d in docs if d["kind"] == "Service")
+    api_port = service["spec"]["ports"][0]["targetPort"]
+    assert clients and all(r["ports"] == [{"protocol": "TCP", "port": api_port}] for r in clients)
 
 
 def test_the_dockerfile_follows_the_ray_image_conventions():
