@@ -22,6 +22,7 @@ from . import __version__
 from .commands._common import clean_help
 from .config import ConfigError
 from .clustering.persistence import CheckpointError
+from .runtime.lease import LeaseHeld
 
 
 def _discover(package: str) -> list:
@@ -68,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"covers-dist: config error: {e}", file=sys.stderr)
         return 2
-    except (FileNotFoundError, FileExistsError, CheckpointError) as e:
+    except (FileNotFoundError, FileExistsError, CheckpointError, LeaseHeld) as e:
         print(f"covers-dist: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

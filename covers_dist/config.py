@@ -441,6 +441,12 @@ class RuntimeConfig:
         "file://...). null: runtime.run_dir, which on a multi-node cluster must then be a disk every node mounts.",
     )
     checkpoint_every: int = _f(10, "Update steps between checkpoints.", min=1)
+    lease_ttl_s: float = _f(
+        60.0,
+        "Seconds a driver's lease on the run's storage lives unrenewed (renewed every third of it): a second "
+        "driver of the run is refused while it lives; one whose driver died is taken over after it.",
+        gt=0.0,
+    )
     torch_threads: int = _f(1, "torch intra-op threads per rollout worker and clustering process.", min=1)
     pipeline: bool = _f(
         True,

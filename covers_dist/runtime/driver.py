@@ -48,22 +48,34 @@ from .processes import announce
 from .ray_setup import check_run_dir_outlives_the_job
 from .rollout import EpisodeSpec
 from .run_storage import CHECKPOINTS, CLUSTERING_LIVE, LEARNERS_LIVE, PROCESSES
-from .run_storage import clear_storage, drop_live_state, fetch_run, storage_holds_a_run, storage_location
+from .run_storage import clear_storage, drop_live_state, fetch_run, open_storage, storage_holds_a_run, storage_location
+from .lease import LeaseHeld, RunLease
 from .tally import EpisodeTally, iteration_row
 from .trainer_checkpoint import restore_trainer, save_trainer
 from .weights import PolicyWeights
 
-__all__ = ["Trainer", "train", "holds_a_run"]
+__all__ = ["Trainer", "train", "holds_a_run", "take_lease", "LeaseHeld"]
 
 
 class Trainer:
     """Runs COVERS (or a baseline variant) on the serial or the Ray backend."""
 
-    def __init__(self, cfg: Config, resume: bool = False, log: Callable[[str], None] = print) -> None:
+    def __init__(
+        self, cfg: Config, resume: bool = False, log: Callable[[str], None] = print, lease: RunLease | None = None
+    ) -> None:
         self.cfg = cfg
         self.log = log
         self.run_dir = Path(cfg.runtime.run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        # one writer per run: the lease comes first (train() takes it before clearing an old run)
+        self.lease = lease if lease is not None else take_lease(cfg, log)
+        try:
+            self._setup(cfg, resume)
+        except BaseException:
+            self.lease.release()
+            raise
+
+    def _setup(self, cfg: Config, resume: bool) -> None:
         self.stream = TaskStream(
             list(cfg.env.tasks), cfg.env.group, cfg.env.episodes_per_task, cfg.env.held_out, cfg.seed
         )
@@ -235,6 +247,7 @@ class Trainer:
             # once, a time limit only after an iteration (however short the limit, a run does one)
             reason = self._early_stop(None)
             while self.env_steps < rt.total_env_steps and not self._stop and reason is None:
+                self.lease.check()  # another driver took the run over: stop before writing on
                 row = self.step()
                 if self.evaluation.due(self.iteration):
                     self.start_evaluation()
@@ -256,6 +269,7 @@ class Trainer:
                     row.update(final)
                     self.backend.call_clustering("report", row)
                     writer.scalars(row)
+            self.lease.check()
             path = self.checkpoint()
             if row:
                 progress.maybe_print(row, force=True)
@@ -297,7 +311,10 @@ class Trainer:
         writer.episodes(self.tally.episode_rows(self.env_steps, self.iteration))
 
     def close(self) -> None:
-        self.backend.shutdown()
+        try:
+            self.backend.shutdown()
+        finally:
+            self.lease.release()
 
 
 def _stacked(firsts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -311,6 +328,12 @@ def _in_order(plan: list[list[EpisodeSpec]]) -> list[EpisodeSpec]:
 
 def _field(item: Any, name: str) -> Any:
     return item[name] if isinstance(item, dict) else getattr(item, name)
+
+def take_lease(cfg: Config, log: Callable[[str], None] = print) -> RunLease:
+    """This driver's lease on the run of ``cfg`` (:mod:`covers_dist.runtime.lease`); raises
+    :class:`LeaseHeld` naming the driver that holds it."""
+    return RunLease(open_storage(storage_location(cfg)), cfg.runtime.lease_ttl_s, log=log).acquire()
+
 
 def holds_a_run(cfg: Config) -> bool:
     """Whether the run directory or the storage of ``cfg`` holds a run's checkpoints (a new run
@@ -382,6 +405,21 @@ def train(
         cfg = rooted_at(_run_config(resume_dir), resume_dir, log)
     assert cfg is not None
     check_run_dir_outlives_the_job(cfg.runtime.run_dir)
+    lease = take_lease(cfg, log)  # before anything of the run is read, cleared or written
+    try:
+        return _train(cfg, resume_dir, lease, log, overwrite, services)
+    finally:
+        lease.release()  # the trainer gave it back already, unless it never started
+
+
+def _train(
+    cfg: Config,
+    resume_dir: str | None,
+    lease: RunLease,
+    log: Callable[[str], None],
+    overwrite: bool,
+    services: Callable[[Config, Any], Any] | None,
+) -> dict:
     run_dir = Path(cfg.runtime.run_dir)
     if resume_dir is None and holds_a_run(cfg):
         if not overwrite:
@@ -415,7 +453,7 @@ def train(
             init_ray(cfg.runtime.num_cpus, cfg.runtime.ray_address)  # a local instance counts the machine's GPUs
             started = True
             graceful()  # ray.init replaced it with one that exits at once
-        trainer = Trainer(cfg, resume=resume_dir is not None, log=log)
+        trainer = Trainer(cfg, resume=resume_dir is not None, log=log, lease=lease)
         if services is not None:
             service = services(cfg, trainer.backend.clustering)
             if service is not None and callable(getattr(service, "check", None)):
