@@ -547,10 +547,26 @@ class ApiConfig:
     refresh_s: float = _f(0.5, "Seconds between snapshots of the clustering state that the GET endpoints serve.", gt=0.0)
     request_timeout_s: float = _f(30.0, "Seconds to wait for the clustering service before answering 503.", gt=0.0)
     compute_concurrency: int = _f(
-        2, "POST /v1/assignments/what-if and /v1/act calls in flight at once (others wait).", min=1
+        2, "POST /v1/assignments/what-if and /v1/act calls in flight at once, PNG decoding included (others wait).",
+        min=1,
+    )
+    max_connections: int = _f(
+        64,
+        "Connections (open or with a request in flight) at which the server answers new requests 503 at once "
+        "(uvicorn's limit_concurrency: the connection that asks counts).",
+        min=1,
+    )
+    allowed_hosts: list[str] | None = _f(
+        None,
+        "Host header names the server answers (others: 400), against DNS rebinding. null: with no token, the "
+        "loopback names (localhost, 127.0.0.1, ::1) and api.host; with a token, any. ['*']: any.",
     )
 
     def __post_init__(self) -> None:
+        bad = [h for h in self.allowed_hosts or [] if h != "*" and not valid_host(h)]
+        if bad or self.allowed_hosts == []:
+            raise ConfigError(f"api.allowed_hosts={self.allowed_hosts!r}: every entry must be a host name, an IP "
+                              "address or '*' (null: the default)")  # fmt: skip
         if not valid_host(self.host):
             raise ConfigError(
                 f"api.host={self.host!r} is not an IP address or a host name (e.g. 127.0.0.1, ::1, localhost, 0.0.0.0)"

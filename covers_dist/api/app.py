@@ -25,12 +25,12 @@ from .. import __version__
 from ..config import Config
 from ..envs import suite_layout
 from .deps import ApiState
-from .middleware import BodyLimitMiddleware, DeprecationMiddleware, RequestMetricsMiddleware
+from .middleware import BodyLimitMiddleware, DeprecationMiddleware, HostAllowListMiddleware, RequestMetricsMiddleware
 from .routers import actions, assignments, health, metrics, policies
 from .snapshot import SnapshotCache
 from .sources import Source
 
-__all__ = ["create_app", "resolve_token", "TOKEN_ENV"]
+__all__ = ["create_app", "resolve_token", "allowed_hosts", "TOKEN_ENV", "LOOPBACK_NAMES"]
 
 log = logging.getLogger("covers_dist.api")
 
@@ -57,6 +57,23 @@ def resolve_token(cfg: Config) -> str | None:
             raise ConfigError(f"api.token_file={cfg.api.token_file!r} holds no token (its first line is empty)")
         return token
     return os.environ.get(TOKEN_ENV) or None
+
+
+#: Host names a server with no token answers for by default (api.allowed_hosts: null).
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+
+
+def allowed_hosts(cfg: Config, token: str | None) -> list[str] | None:
+    """The ``Host`` names the server answers for, or None for any: ``api.allowed_hosts`` when set
+    (``['*']``: any); else, with no token, the loopback names and ``api.host`` (unless it is a
+    wildcard address); with a token, any (a page that rebinds its DNS name has no token to send)."""
+    given = cfg.api.allowed_hosts
+    if given is not None:
+        return None if "*" in given else list(given)
+    if token:
+        return None
+    extra = [] if cfg.api.host in ("0.0.0.0", "::") else [cfg.api.host]
+    return [*LOOPBACK_NAMES, *extra]
 
 
 def _location(loc: Any) -> str:
@@ -133,5 +150,8 @@ def create_app(cfg: Config, source: Source, *, token: str | None = None) -> Fast
         app.include_router(router)
     app.add_middleware(DeprecationMiddleware, successors=assignments.SUCCESSORS)
     app.add_middleware(BodyLimitMiddleware, max_bytes=cfg.api.max_body_bytes)
+    allowed = allowed_hosts(cfg, state.token)
+    if allowed is not None:
+        app.add_middleware(HostAllowListMiddleware, allowed=allowed)
     app.add_middleware(RequestMetricsMiddleware, metrics=request_metrics)  # outermost: counts 413s too
     return app

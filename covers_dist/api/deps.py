@@ -19,7 +19,7 @@ from starlette.concurrency import run_in_threadpool
 
 from ..config import ApiConfig
 from ..envs.layout import ObsLayout
-from .observations import ObservationError
+from .observations import ObservationError, decode_observations
 from .snapshot import Snapshot, SnapshotCache
 from .sources import Source, SourceUnavailable
 
@@ -27,6 +27,7 @@ __all__ = [
     "ApiState",
     "api_state",
     "require_token",
+    "call_on_observations",
     "current_snapshot",
     "call_source",
     "snapshot_json",
@@ -97,18 +98,35 @@ async def call_source(state: ApiState, method: str, *args: Any, **kwargs: Any) -
     """``source.<method>(...)`` in the thread pool (at most ``api.compute_concurrency`` at once)."""
     assert state.compute is not None
     async with state.compute:
+        return await _call(state, method, *args, **kwargs)
+
+
+async def call_on_observations(state: ApiState, observations: Any, method: str, *args: Any) -> Any:
+    """``source.<method>(decoded, *args)`` for JSON ``observations``: the PNG decoding and the call
+    both run in the thread pool, never on the event loop, in one of the ``api.compute_concurrency``
+    slots; an observation that does not decode is a 422 naming it."""
+    assert state.compute is not None
+    async with state.compute:
         try:
-            return await run_in_threadpool(state.source.call, method, *args, **kwargs)
-        except SourceUnavailable as e:
-            raise HTTPException(503, str(e)) from None
-        except KeyError as e:  # before LookupError: KeyError is one
-            raise HTTPException(404, _describe_key_error(e)) from None
-        except LookupError as e:
-            raise HTTPException(409, str(e)) from None
-        except PermissionError as e:
-            raise HTTPException(403, str(e)) from None
-        except (ObservationError, ValueError, TypeError) as e:
+            obs = await run_in_threadpool(decode_observations, observations, state.layout)
+        except ObservationError as e:
             raise HTTPException(422, str(e)) from None
+        return await _call(state, method, obs, *args)
+
+
+async def _call(state: ApiState, method: str, *args: Any, **kwargs: Any) -> Any:
+    try:
+        return await run_in_threadpool(state.source.call, method, *args, **kwargs)
+    except SourceUnavailable as e:
+        raise HTTPException(503, str(e)) from None
+    except KeyError as e:  # before LookupError: KeyError is one
+        raise HTTPException(404, _describe_key_error(e)) from None
+    except LookupError as e:
+        raise HTTPException(409, str(e)) from None
+    except PermissionError as e:
+        raise HTTPException(403, str(e)) from None
+    except (ObservationError, ValueError, TypeError) as e:
+        raise HTTPException(422, str(e)) from None
 
 
 def _err(description: str) -> dict[str, Any]:

@@ -1,4 +1,9 @@
-"""ASGI middleware: the request-body cap (413), the request metrics and the deprecation headers.
+"""ASGI middleware: the Host allow-list (400), the request-body cap (413), the request metrics and
+the deprecation headers.
+
+The Host allow-list answers 400 to a request whose ``Host`` header names a host the server does not
+answer for: a page on another site that rebinds its own DNS name to 127.0.0.1 (DNS rebinding) then
+reaches the server with its own name in ``Host``, and is refused before any route runs.
 
 The body cap answers 413 as soon as a declared ``Content-Length`` is too large, before any of
 the body is read; a body sent without a length (chunked) is read only up to the cap.
@@ -16,7 +21,8 @@ Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
-__all__ = ["BodyLimitMiddleware", "DeprecationMiddleware", "RequestMetricsMiddleware", "send_error"]
+__all__ = ["BodyLimitMiddleware", "DeprecationMiddleware", "HostAllowListMiddleware", "RequestMetricsMiddleware",
+           "send_error", "host_name"]  # fmt: skip
 
 
 async def send_error(send: Send, status: int, detail: str, headers: list[tuple[bytes, bytes]] | None = None) -> None:
@@ -30,6 +36,33 @@ async def send_error(send: Send, status: int, detail: str, headers: list[tuple[b
         }
     )
     await send({"type": "http.response.body", "body": body})
+
+
+def host_name(header: bytes) -> str:
+    """The host of a ``Host`` header (``name:port``, ``[v6]:port``), lower-cased, without the port."""
+    value = header.decode("latin-1").strip().lower()
+    if value.startswith("["):
+        return value[1 : value.find("]")] if "]" in value else value
+    return value.rsplit(":", 1)[0] if value.count(":") == 1 else value
+
+
+class HostAllowListMiddleware:
+    """Answers 400 to a request whose ``Host`` header names none of ``allowed`` (lower-case names)."""
+
+    def __init__(self, app: ASGIApp, allowed: list[str]) -> None:
+        self.app = app
+        self.allowed = {h.lower().rstrip(".") for h in allowed}
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            hosts = [v for k, v in scope.get("headers", []) if k == b"host"]
+            name = host_name(hosts[0]).rstrip(".") if hosts else None
+            if name is not None and name not in self.allowed:
+                shown = hosts[0][:64].decode("latin-1")
+                await send_error(send, 400, f"Host header {shown!r} is not one this server answers for "
+                                 f"(api.allowed_hosts: {sorted(self.allowed)})")  # fmt: skip
+                return
+        await self.app(scope, receive, send)
 
 
 class BodyLimitMiddleware:

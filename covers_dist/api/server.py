@@ -73,7 +73,11 @@ class ApiServerThread:
 
         check_exposure(app, host)
 
-        config = uvicorn.Config(app, host=host, port=port, log_level=log_level, access_log=False, lifespan="on")
+        api = getattr(getattr(app, "state", None), "api", None)
+        limit = getattr(getattr(api, "api", None), "max_connections", None)  # more at once: 503 at once
+        config = uvicorn.Config(
+            app, host=host, port=port, log_level=log_level, access_log=False, lifespan="on", limit_concurrency=limit
+        )
         self.server = uvicorn.Server(config)
         self.host = host
         self.url = ""

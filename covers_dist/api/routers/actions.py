@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, HTTPException
+from fastapi import APIRouter, Depends
 
-from ..deps import ERROR_RESPONSES, ApiState, api_state, call_source, require_token
-from ..observations import ObservationError, decode_observations
+from ..deps import ERROR_RESPONSES, ApiState, api_state, call_on_observations, require_token
 from ..schemas import ActRequest, ActResult, ErrorBody
 from ..snapshot import json_safe
 
@@ -20,11 +19,7 @@ router = APIRouter(prefix="/v1", tags=["actions"], dependencies=[Depends(require
     responses={**ERROR_RESPONSES, 404: {"model": ErrorBody, "description": "Unknown policy, or no policy yet."}},
 )
 async def act(body: ActRequest, state: ApiState = Depends(api_state)) -> ActResult:
-    try:
-        obs = decode_observations([body.observation], state.layout)
-    except ObservationError as e:
-        raise HTTPException(422, str(e)) from None
-    out = await call_source(state, "act", obs, body.policy_id, body.deterministic)
+    out = await call_on_observations(state, [body.observation], "act", body.policy_id, body.deterministic)
     out = json_safe(out)
     return ActResult(
         policy_id=int(out["policy_id"]),

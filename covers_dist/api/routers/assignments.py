@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Response
 
-from ..deps import ERROR_RESPONSES, ApiState, api_state, call_source, current_snapshot, require_token, snapshot_json
-from ..observations import ObservationError, decode_observations
+from ..deps import ERROR_RESPONSES, ApiState, api_state, call_on_observations, current_snapshot, require_token
+from ..deps import snapshot_json
 from ..schemas import AssignmentPage, AssignmentRecord, AssignRequest, CurrentAssignment, ErrorBody, WhatIfResult
 from ..snapshot import Snapshot, json_safe
 
@@ -103,11 +103,7 @@ async def what_if(body: AssignRequest, state: ApiState = Depends(api_state)) -> 
         raise HTTPException(
             422, f"observations: {n} given, not a multiple of clustering.initial_frames={state.initial_frames}"
         )
-    try:
-        obs = decode_observations(body.observations, state.layout)
-    except ObservationError as e:
-        raise HTTPException(422, str(e)) from None
-    record = await call_source(state, "what_if", obs)
+    record = await call_on_observations(state, body.observations, "what_if")
     fields = WhatIfResult.model_fields
     return WhatIfResult(**{k: v for k, v in json_safe(record).items() if k in fields})
 
