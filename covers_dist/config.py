@@ -441,6 +441,12 @@ class RuntimeConfig:
         "file://...). null: runtime.run_dir, which on a multi-node cluster must then be a disk every node mounts.",
     )
     checkpoint_every: int = _f(10, "Update steps between checkpoints.", min=1)
+    storage_retry_s: float = _f(
+        120.0,
+        "Seconds an object store's failing reads and writes are retried (backoff from 0.25 s to 8 s, each retry "
+        "logged) before the run stops cleanly at its last valid checkpoint.",
+        gt=0.0,
+    )
     lease_ttl_s: float = _f(
         60.0,
         "Seconds a driver's lease on the run's storage lives unrenewed (renewed every third of it): a second "

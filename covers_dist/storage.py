@@ -10,19 +10,35 @@ checkpoints and logs go through :class:`Storage`.
 
 Each object is written whole: a local file through a temporary file and a rename, an object
 store's object in one upload, so a reader sees the old or the new object, never half of one.
+
+Faults: an object store's errors (a server away, a timeout, throttling) are retried with
+exponential backoff for up to ``retry_s`` seconds, each retry logged; past that the operation
+raises :class:`StorageUnavailable`. A local disk that is full (or read-only, or over quota) raises
+:class:`StorageFull` at once, naming the disk and the object. A missing object is
+:class:`ObjectMissing`, never retried. Every message has the location's credentials redacted.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import io
 import os
+import sys
 import tarfile
+import time
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Callable, Iterator, TypeVar
+
+T = TypeVar("T")
 
 __all__ = [
     "Storage",
     "StorageError",
+    "StorageUnavailable",
+    "StorageFull",
+    "ObjectMissing",
+    "DEFAULT_RETRY_S",
     "is_uri",
     "storage_child",
     "pack_dir",
@@ -38,7 +54,32 @@ SECRET_PARAMS = ("access_key", "secret_key", "session_token", "access_token", "c
 
 
 class StorageError(RuntimeError):
-    """Storage that cannot be opened, or an object it should hold and does not."""
+    """Storage that cannot be opened or used, or an object it should hold and does not."""
+
+
+class ObjectMissing(StorageError):
+    """An object the storage should hold and does not."""
+
+
+class StorageUnavailable(StorageError):
+    """An object store that kept failing for the whole retry budget (``retry_s``)."""
+
+
+class StorageFull(StorageError):
+    """A local disk with no room left (or read-only, or over quota) for an object being written."""
+
+
+#: How long an object store's failing operation is retried before :class:`StorageUnavailable`.
+DEFAULT_RETRY_S = 120.0
+_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG}
+#: Object-store errors that waiting does not mend (a wrong bucket or credentials): never retried.
+PERMANENT = ("NO_SUCH_BUCKET", "NoSuchBucket", "ACCESS_DENIED", "AccessDenied", "INVALID_ACCESS_KEY_ID",
+             "InvalidAccessKeyId", "SIGNATURE_DOES_NOT_MATCH", "SignatureDoesNotMatch", "INVALID_BUCKET_NAME",
+             "Forbidden")  # fmt: skip
+
+
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
 
 
 def is_uri(location: str) -> bool:
@@ -77,9 +118,12 @@ def redact_uri(location: str) -> str:
 class Storage:
     """Read and write whole objects under one root (a local directory or a ``pyarrow.fs`` URI)."""
 
-    def __init__(self, location: str | Path) -> None:
+    def __init__(
+        self, location: str | Path, retry_s: float = DEFAULT_RETRY_S, log: Callable[[str], None] = _stderr
+    ) -> None:
         import pyarrow.fs as pafs
 
+        self.retry_s, self.log = float(retry_s), log
         location = str(location)
         if not location:
             raise StorageError("storage location is empty: give a local path or a URI such as s3://bucket/prefix")
@@ -103,48 +147,86 @@ class Storage:
         return f"{self.root}/{key}" if key else self.root
 
     # ---- objects ---------------------------------------------------------------------------------
+    def _attempt(self, what: str, key: str, op: Callable[[], T]) -> T:
+        """``op()``, retried with backoff while an object store fails (see the module docs)."""
+        delay, tries = 0.25, 0
+        deadline = time.monotonic() + self.retry_s
+        while True:
+            try:
+                return op()
+            except FileNotFoundError as e:
+                raise ObjectMissing(f"{self.describe(key)} is missing") from e
+            except OSError as e:
+                reason = _scrub(f"{type(e).__name__}: {e}", self.location)
+                if self.local or getattr(e, "errno", None) in _FULL or any(m in str(e) for m in PERMANENT):
+                    if getattr(e, "errno", None) in _FULL:
+                        raise StorageFull(f"no room to {what} {self.describe(key)}: {reason}") from None
+                    raise StorageError(f"cannot {what} {self.describe(key)}: {reason}") from None
+                tries += 1
+                if time.monotonic() + delay > deadline:
+                    raise StorageUnavailable(
+                        f"storage {self.describe()} kept failing for {self.retry_s:g} s ({tries} tries) "
+                        f"to {what} {key}: {reason}"
+                    ) from None
+                self.log(f"storage {self.describe()}: {what} {key} failed ({reason}); retry {tries} in {delay:.2g} s")
+                time.sleep(delay)
+                delay = min(delay * 2, 8.0)
+
     def write_bytes(self, key: str, data: bytes) -> None:
         """Write the object ``key`` whole (replacing it)."""
+        self._attempt("write", key, lambda: self._write(key, data))
+
+    def _write(self, key: str, data: bytes) -> None:
         path = self._path(key)
         parent, name = path.rsplit("/", 1)
         if self.local:
             os.makedirs(parent, exist_ok=True)
             tmp = f"{parent}/.{name}.{os.getpid()}.tmp"
-            with open(tmp, "wb") as fh:
-                fh.write(data)
-            os.replace(tmp, path)  # a crash leaves the old or the new file, never half of one
+            try:
+                with open(tmp, "wb") as fh:
+                    fh.write(data)
+                os.replace(tmp, path)  # a crash leaves the old or the new file, never half of one
+            except OSError:
+                with contextlib.suppress(OSError):
+                    os.remove(tmp)
+                raise
             return
         with self.fs.open_output_stream(path) as out:  # an object store's object appears whole on close
             out.write(data)
 
     def read_bytes(self, key: str) -> bytes:
-        """The object ``key``; :class:`StorageError` if it is missing."""
-        try:
+        """The object ``key``; :class:`ObjectMissing` (a :class:`StorageError`) if it is missing."""
+
+        def read() -> bytes:
             with self.fs.open_input_stream(self._path(key)) as fh:
                 return fh.readall()
-        except FileNotFoundError as e:
-            raise StorageError(f"{self.describe(key)} is missing") from e
+
+        return self._attempt("read", key, read)
 
     def exists(self, key: str) -> bool:
-        return self.fs.get_file_info(self._path(key)).type == self._pafs.FileType.File
+        return self._attempt("look up", key, lambda: self.fs.get_file_info(self._path(key)).type) == self._pafs.FileType.File
 
     def delete(self, key: str) -> None:
         """Remove the object ``key`` (nothing if it is missing)."""
         if self.exists(key):
-            self.fs.delete_file(self._path(key))
+            with contextlib.suppress(ObjectMissing):  # removed meanwhile
+                self._attempt("delete", key, lambda: self.fs.delete_file(self._path(key)))
 
     def delete_dir(self, key: str) -> None:
         """Remove everything under ``key`` (nothing if there is nothing)."""
-        info = self.fs.get_file_info(self._path(key))
+        info = self._attempt("look up", key, lambda: self.fs.get_file_info(self._path(key)))
         if info.type == self._pafs.FileType.Directory:
-            self.fs.delete_dir(self._path(key))
+            self._attempt("delete", key, lambda: self.fs.delete_dir(self._path(key)))
+
+    def _infos(self, key: str, recursive: bool) -> Any:
+        selector = self._pafs.FileSelector(self._path(key), allow_not_found=True, recursive=recursive)
+        return self._attempt("list", key, lambda: self.fs.get_file_info(selector))
 
     def list(self, key: str, recursive: bool = False) -> list[str]:
         """Names of the objects under ``key`` (relative to it, sorted); hidden temporaries left out."""
         base = self._path(key)
-        selector = self._pafs.FileSelector(base, allow_not_found=True, recursive=recursive)
         out = []
-        for info in self.fs.get_file_info(selector):
+        for info in self._infos(key, recursive):
             if info.type != self._pafs.FileType.File:
                 continue
             rel = info.path[len(base) :].lstrip("/")
@@ -155,10 +237,9 @@ class Storage:
     def list_dirs(self, key: str) -> list[str]:
         """Names of the directories (prefixes) right under ``key``, sorted."""
         base = self._path(key)
-        selector = self._pafs.FileSelector(base, allow_not_found=True, recursive=False)
         return sorted(
             info.path[len(base) :].strip("/")
-            for info in self.fs.get_file_info(selector)
+            for info in self._infos(key, False)
             if info.type == self._pafs.FileType.Directory
         )
 

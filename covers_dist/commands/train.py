@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from ._common import add_config_args, config_from_args
 
@@ -68,6 +69,9 @@ def run(args: argparse.Namespace) -> int:
             result = train(cfg, overwrite=args.overwrite, services=_http_service)
     keys = ("status", "checkpoint", "ari", "num_policies", "policy_counts")
     print(json.dumps({k: result.get(k) for k in keys}, default=str), flush=True)
+    if result.get("status") == "storage-fault":  # stopped cleanly; the message was logged
+        print(f"covers-dist train: stopped by a storage fault: {result.get('error')}", file=sys.stderr, flush=True)
+        return 3
     return 0
 
 

@@ -55,7 +55,7 @@ class ClusteringService:
     def __init__(self, cfg: Config, storage: str | None = None, read_only: bool = False) -> None:
         torch.set_num_threads(cfg.runtime.torch_threads)
         self.cfg = cfg
-        self.store = open_storage(storage) if storage and not read_only else None
+        self.store = open_storage(storage, cfg.runtime.storage_retry_s) if storage and not read_only else None
         self.read_only = read_only
         self.layout = suite_layout(cfg.env.suite, cfg.env.image_size)
         self.models: dict[int, Any] = {}

@@ -48,7 +48,7 @@ from .processes import announce
 from .ray_setup import check_run_dir_outlives_the_job
 from .rollout import EpisodeSpec
 from .run_storage import CHECKPOINTS, CLUSTERING_LIVE, LEARNERS_LIVE, PROCESSES
-from .run_storage import clear_storage, drop_live_state, fetch_run, open_storage, storage_holds_a_run, storage_location
+from .run_storage import clear_storage, drop_live_state, fetch_run, run_store, storage_holds_a_run, storage_location
 from .lease import LeaseHeld, RunLease
 from .tally import EpisodeTally, iteration_row
 from .trainer_checkpoint import restore_trainer, save_trainer
@@ -277,10 +277,28 @@ class Trainer:
             self.log(f"{status}: checkpoint {path}; resume with: covers-dist train --resume {self.run_dir}")
             out = {"status": status, "row": row, "checkpoint": str(path), **self.backend.call_clustering("metrics")}
             return {**out, "stopped_early": reason} if reason is not None else out
+        except (StorageError, OSError) as e:  # an outage past its retries, a full disk: stop, keep what is valid
+            return self._storage_fault(e)
         finally:
-            writer.close()
+            try:
+                writer.close()
+            except OSError as e:  # a full disk: the logs keep what was written; a resume drops the rest
+                self.log(f"warning: the logs could not be closed ({type(e).__name__}: {e})")
             for s, h in old.items():
                 signal.signal(s, h)
+
+    def _storage_fault(self, error: BaseException) -> dict[str, Any]:
+        """Stop on a storage fault without writing on: nothing after the newest valid checkpoint is
+        kept, and a resume from it (once the storage is back) ends where an unbroken run ends."""
+        self._stop = True
+        ckpt = latest_valid_checkpoint(self.run_dir, log=self.log)
+        message = f"{type(error).__name__}: {error}".splitlines()[0]
+        where = f"its last valid checkpoint is {ckpt}" if ckpt is not None else "it has no valid checkpoint yet"
+        self.log(
+            f"stopped by a storage fault at iteration {self.iteration} ({message}); {where}. Once the storage "
+            f"is back (or the disk has room): covers-dist train --resume {self.run_dir}"
+        )
+        return {"status": "storage-fault", "error": message, "checkpoint": None if ckpt is None else str(ckpt)}
 
     def _early_stop(self, deadline: float | None) -> str | None:
         """Why the loop ends before ``runtime.total_env_steps`` (None: it goes on): groups held under
@@ -332,7 +350,7 @@ def _field(item: Any, name: str) -> Any:
 def take_lease(cfg: Config, log: Callable[[str], None] = print) -> RunLease:
     """This driver's lease on the run of ``cfg`` (:mod:`covers_dist.runtime.lease`); raises
     :class:`LeaseHeld` naming the driver that holds it."""
-    return RunLease(open_storage(storage_location(cfg)), cfg.runtime.lease_ttl_s, log=log).acquire()
+    return RunLease(run_store(cfg), cfg.runtime.lease_ttl_s, log=log).acquire()
 
 
 def holds_a_run(cfg: Config) -> bool:

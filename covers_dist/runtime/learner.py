@@ -74,7 +74,7 @@ class PolicyLearner:
         self.version = 0
         #: version after an update -> (statistics, weights) of that update, newest KEEP_RESULTS
         self.results: dict[int, tuple[dict[str, Any], dict[str, torch.Tensor]]] = {}
-        self.store = open_storage(storage) if storage else None
+        self.store = open_storage(storage, cfg.runtime.storage_retry_s) if storage else None
         self.live_key = live_state_key(policy_id)
         self.restored = False
         if self.store is not None and self.store.exists(self.live_key):

@@ -27,7 +27,7 @@ import time
 import uuid
 from typing import Any, Callable
 
-from ..storage import Storage, StorageError
+from ..storage import ObjectMissing, Storage, StorageError
 
 __all__ = ["RunLease", "LeaseHeld", "LEASE"]
 
@@ -77,7 +77,7 @@ class RunLease:
         """The lease as stored, or None when there is none (an unreadable one counts as none)."""
         try:
             data = self.storage.read_bytes(LEASE)
-        except StorageError:
+        except ObjectMissing:
             return None
         try:
             lease = json.loads(data)

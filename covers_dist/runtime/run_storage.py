@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Callable
 
 from ..config import Config
-from ..storage import Storage, StorageError, is_uri
+from ..storage import DEFAULT_RETRY_S, Storage, StorageError, is_uri
 from .checkpoint import KEEP, CheckpointError, list_checkpoints, verify_checkpoint
 
 __all__ = [
@@ -40,6 +40,7 @@ __all__ = [
     "PROCESSES",
     "storage_location",
     "open_storage",
+    "run_store",
     "mirrors_run_dir",
     "drop_live_state",
     "push_checkpoint",
@@ -64,10 +65,15 @@ def storage_location(cfg: Config, run_dir: str | Path | None = None) -> str:
 
 
 @functools.lru_cache(maxsize=8)
-def open_storage(location: str) -> Storage:
-    """One :class:`~covers_dist.storage.Storage` per location and process (opening an object
-    store's filesystem resolves its endpoint and credentials once)."""
-    return Storage(location)
+def open_storage(location: str, retry_s: float = DEFAULT_RETRY_S) -> Storage:
+    """One :class:`~covers_dist.storage.Storage` per location, retry budget and process (opening an
+    object store's filesystem resolves its endpoint and credentials once)."""
+    return Storage(location, retry_s=retry_s)
+
+
+def run_store(cfg: Config) -> Storage:
+    """The storage of the run of ``cfg``, with its retry budget (``runtime.storage_retry_s``)."""
+    return open_storage(storage_location(cfg), cfg.runtime.storage_retry_s)
 
 
 def mirrors_run_dir(cfg: Config) -> bool:
@@ -89,7 +95,7 @@ def _same_dir(a: str, b: str) -> bool:
 def drop_live_state(cfg: Config, keep_policies: list[int] | None = None) -> None:
     """Remove live state an earlier run left: every learner's but those of ``keep_policies``
     (a resumed checkpoint's), and the clustering actor's unless a checkpoint is resumed."""
-    store = open_storage(storage_location(cfg))
+    store = run_store(cfg)
     kept = {f"policy-{pid}.pt" for pid in keep_policies or []}
     for name in store.list(LEARNERS_LIVE):
         if name not in kept:
@@ -103,7 +109,7 @@ def push_checkpoint(cfg: Config, path: Path) -> None:
     the run directory); keep the newest ``KEEP`` checkpoints there."""
     if not mirrors_run_dir(cfg):
         return
-    store = open_storage(storage_location(cfg))
+    store = run_store(cfg)
     store.put_dir(path, f"{CHECKPOINTS}/{path.name}", last="manifest.json")
     for name in store.list_dirs(CHECKPOINTS)[:-KEEP]:
         store.delete_dir(f"{CHECKPOINTS}/{name}")
@@ -115,7 +121,7 @@ def push_checkpoint(cfg: Config, path: Path) -> None:
 
 def storage_holds_a_run(cfg: Config) -> bool:
     """Whether the storage (apart from the run directory) holds checkpoints of a run."""
-    return mirrors_run_dir(cfg) and bool(open_storage(storage_location(cfg)).list_dirs(CHECKPOINTS))
+    return mirrors_run_dir(cfg) and bool(run_store(cfg).list_dirs(CHECKPOINTS))
 
 
 def fetch_run(cfg: Config, log: Callable[[str], None] = print) -> Path | None:
@@ -125,7 +131,7 @@ def fetch_run(cfg: Config, log: Callable[[str], None] = print) -> Path | None:
     run_dir = Path(cfg.runtime.run_dir)
     if not mirrors_run_dir(cfg) or any(_valid(p) for p in list_checkpoints(run_dir)):
         return None
-    store = open_storage(storage_location(cfg))
+    store = run_store(cfg)
     names = store.list_dirs(CHECKPOINTS)
     if not names:
         return None
@@ -163,7 +169,7 @@ def clear_storage(cfg: Config) -> None:
     """Remove an earlier run from the storage (apart from the run directory): ``--overwrite``."""
     if not mirrors_run_dir(cfg):
         return
-    store = open_storage(storage_location(cfg))
+    store = run_store(cfg)
     for key in (CHECKPOINTS, LEARNERS_LIVE, CLUSTERING_LIVE, PROCESSES):
         store.delete_dir(key)
     for name in store.list(""):
