@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from covers_dist.bench.chaos import KINDS, TARGET_KILLS, compare, failures, max_abs_diff
+from covers_dist.bench.chaos import KINDS, STATE_PARTS, TARGET_KILLS, compare, failures, final_state, max_abs_diff
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -40,6 +40,7 @@ def _assert_equal_to_clean(report):
     assert c["assigned_exactly_once"] and c["logged_exactly_once"], c
     assert c["logged_doubles"] == 0 and c["logged_missing"] == 0
     assert c["weights_identical"] and c["weights_max_abs_diff"] == 0.0, c
+    assert c["state_identical"] and c["state_differences"] == {}, c["state_differences"]
     assert report["equal_to_clean"]
 
 
@@ -64,6 +65,51 @@ def test_compare_sees_a_changed_assignment_a_double_and_a_changed_weight():
     c = compare(clean, other)
     assert not c["assignments_identical"] and not c["logged_exactly_once"] and c["logged_doubles"] == 1
     assert not c["weights_identical"] and c["weights_max_abs_diff"] == 0.5
+
+
+def test_compare_sees_a_difference_in_every_part_of_the_whole_state(tiny_serial_run):
+    """A real run's final state against itself is identical; one changed value anywhere (an Adam
+    moment, a version, a driver counter, an RNG state, a bank buffer, a history record, a row of
+    metrics.jsonl or eval.jsonl) fails the verdict with its path; wall-clock fields do not count."""
+    import copy
+
+    import numpy as np
+
+    state = final_state(tiny_serial_run[2])
+    assert set(STATE_PARTS) <= set(state) and compare(state, copy.deepcopy(state))["state_identical"]
+    ppo = state["learners"]["policy-0"]["ppo"]
+    moment_key = next(k for k in ppo["optimizer"]["state"][0] if k.startswith("exp_avg"))
+
+    def moment(s):
+        s["learners"]["policy-0"]["ppo"]["optimizer"]["state"][0][moment_key] += 1.0
+
+    def buffer(s):
+        key = next(iter(s["bank"]["buffers"]))
+        s["bank"]["buffers"][key] = np.array(s["bank"]["buffers"][key], copy=True)
+        s["bank"]["buffers"][key].flat[0] += 1
+
+    changes = {
+        "learners": [moment, lambda s: s["learners"]["policy-0"].update(version=s["learners"]["policy-0"]["version"] + 1)],
+        "driver": [lambda s: s["driver"].update(env_steps=s["driver"]["env_steps"] + 1),
+                   lambda s: s["driver"]["stream"].update(episode=-1)],
+        "bank": [buffer, lambda s: s["bank"]["state"]["history"][0].update(decision="recall")],
+        "metrics": [lambda s: s["metrics"][-1].update(iteration=99)],
+    }  # fmt: skip
+    for part, edits in changes.items():
+        for edit in edits:
+            other = copy.deepcopy(state)
+            edit(other)
+            c = compare(state, other)
+            assert not c["state_identical"] and list(c["state_differences"]) == [part], (part, c["state_differences"])
+            assert any(f"the {part}" in f or part in f for f in failures({"comparison": c})), part
+    other = copy.deepcopy(state)
+    other["eval"] = [*other["eval"], {"iteration": 5}]
+    assert list(compare(state, other)["state_differences"]) == ["eval"]
+    from covers_dist.bench.chaos import stable  # wall-clock fields are left out of every part
+
+    assert "wall_time" not in state["metrics"][-1] and "time/sample" not in state["metrics"][-1]
+    assert "wall_time" not in stable({"wall_time": 1.0, "time/sample": 2.0, "ppo/samples_per_s": 3.0, "a": 1})
+    assert stable({"x": [{"time_unix": 1, "b": 2}]}) == {"x": [{"b": 2}]}
 
 
 def test_max_abs_diff_does_not_hide_a_nan_or_an_unmatched_inf():
@@ -133,7 +179,7 @@ def test_bad_chaos_arguments_are_refused_with_a_message(tmp_path, capsys):
         (["--interval", "5,1"], ["MIN <= MAX"]),
         (["--interval", "x"], ["MIN,MAX"]),
         (["--kinds", "worker,gpu"], ["--kinds"]),
-        (["--max-kills", "3"], ["--max-kills 3", "5 kinds"]),  # cannot kill each of 5 kinds once
+        (["--max-kills", "3"], ["--max-kills 3", f"{len(KINDS)} kinds"]),  # cannot kill each kind once
         (["--node-loss", "workers", "--lose-after", "10", *steps], ["--lose-after 10", "10 iterations", "1 to 9"]),
         (["--node-loss", "learners", "--lose-after", "400", *steps], ["--lose-after 400", "10 iterations"]),
         (["--node-loss", "workers", "--lose-after", "0", *steps], ["--lose-after 0", "1 to 9"]),
@@ -149,10 +195,10 @@ def test_bad_chaos_arguments_are_refused_with_a_message(tmp_path, capsys):
 
 def test_short_chaos_run_equals_the_clean_run():
     """Every kind killed exactly once over a short run (the default suite's version): the last
-    kills of a --max-kills budget go to the kinds not killed yet, so 5 kills are one of each. The
-    5 kills come within the first iterations (a kill every 1-2 s; measured on 2 cores: all of them
-    in about 6 s from the end of iteration 1, the driver's last iteration the 2nd or 3rd), so 7
-    iterations leave the run room to go on after them. A narrow network on 16 px images and two of
+    kills of a --max-kills budget go to the kinds not killed yet, so 6 kills are one of each, the
+    SIGTERM and the SIGKILL of the driver among them. The kills come within the first iterations
+    (a kill every 1-2 s, each driver kill followed by a resume), so 10 iterations leave the run room
+    to go on after them; the whole state is compared, not only the weights. A narrow network on 16 px images and two of
     the smoke config's groups and no learner started ahead: every process the kills restart builds
     the network, each group has a learner to start, and what is compared does not depend on any of
     these. Two rollout workers, pipelined (the default): the run on Ray, faults and all, must equal
@@ -163,7 +209,7 @@ def test_short_chaos_run_equals_the_clean_run():
     still equal the serial run (the fault-free run with one learner process, which also counts the
     processes: ``tests/test_pipeline.py``, slow)."""
     report, _ = _chaos("--interval", "1,2", "--seed", "1", "--max-kills", str(len(KINDS)),
-                       *_sets("runtime.total_env_steps=2800", "network.channels=[2,4]", "network.hidden=8",
+                       *_sets("runtime.total_env_steps=4000", "network.channels=[2,4]", "network.hidden=8",
                               "env.image_size=16", "env.tasks=[reach,push]", "runtime.num_workers=2",
                               "runtime.learner_ahead=false", "runtime.learners_per_process=2"))  # fmt: skip
     assert report["kills"] == {k: 1 for k in KINDS}, report["kills"]

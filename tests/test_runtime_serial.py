@@ -102,6 +102,9 @@ def test_sigterm_checkpoints_after_the_iteration_and_the_resumed_run_ends_as_the
     unbroken = [json.loads(line) for line in (tiny_serial_run[2] / "metrics.jsonl").read_text().splitlines()]
     assert assignments(second) == tiny_serial_run[0]
     assert [r.get("ppo/policy_loss") for r in rows] == [r.get("ppo/policy_loss") for r in unbroken]
+    from covers_dist.bench.chaos import differences, stable
+
+    assert differences(stable(rows), stable(unbroken)) == []  # every row whole, but its wall-clock fields
 
 
 def _tree(root):

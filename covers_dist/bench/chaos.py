@@ -7,13 +7,19 @@ Two runs of the same config and seed, one after the other:
 2. **chaos**: ``covers-dist train`` as a child process on its own loopback-only Ray instance,
    with the HTTP service on, while every ``--interval`` seconds (uniform in MIN..MAX, from a
    seeded schedule) one live component is killed: a rollout worker, a learner, the clustering
-   actor or the HTTP service by SIGKILL (a crash), or the driver by SIGTERM (it checkpoints
-   and exits) followed by ``covers-dist train --resume``. Victims are found in the run's
-   ``processes/`` records.
+   actor or the HTTP service by SIGKILL (a crash), the driver by SIGTERM (``driver``: it
+   checkpoints and exits), or the driver's whole process group by SIGKILL (``driver-kill``: the
+   driver and the Ray instance it started die at once, as when its machine or container goes;
+   what that incarnation started and left behind is then killed by PID), each followed by
+   ``covers-dist train --resume``. Victims are found in the run's ``processes/`` records.
 
 Compared at the end, from the two runs' final checkpoints and logs: the assignment of every
-batch (policy and decision), every episode index logged exactly once, and every policy's final
-weights (exactly equal, or the largest difference; a NaN anywhere is a difference).
+batch (policy and decision), every episode index logged exactly once, every policy's final
+weights (exactly equal, or the largest difference; a NaN anywhere is a difference), and the whole
+state (:func:`final_state`): every learner's optimizer moments, schedule and version, the driver's
+counters and RNG states, the bank's buffers, history and counters, and every row of metrics.jsonl
+and eval.jsonl, with only wall-clock fields (:data:`VOLATILE`) left out. Any difference fails the
+verdict, named by its path.
 ``--node-loss workers|learners`` runs a different fault instead: a local 2-node cluster
 (:mod:`covers_dist.runtime.local_cluster`) where the node holding the rollout workers (or the
 learners) is removed mid-run; the run continues on the surviving node. With ``--isolated-disk``
@@ -53,7 +59,9 @@ from ..runtime.processes import list_processes, running
 from ..runtime.run_storage import storage_location
 from ..storage import is_uri, storage_child
 
-KINDS = ("worker", "learner", "clustering", "api", "driver")
+KINDS = ("worker", "learner", "clustering", "api", "driver", "driver-kill")
+#: The process role (``processes/`` records) each kind of kill picks its victim from.
+ROLE = {"driver-kill": "driver"}
 TARGET_KILLS = 20
 PROG = "covers-dist bench chaos"
 
@@ -99,10 +107,68 @@ def clean_run(cfg: Config) -> float:
     return time.monotonic() - t0
 
 
-def final_state(run_dir: Path) -> dict[str, Any]:
-    """Assignments, logged episode indices and policy weights of a finished run (newest checkpoint)."""
+#: Fields that hold wall-clock readings (seconds, rates, timestamps): the only ones a fault may change.
+VOLATILE = frozenset({"wall_time", "wall_time_ms", "time_unix", "time_s", "created_at_time"})
+
+
+def _volatile(key: str) -> bool:
+    return key in VOLATILE or key.startswith("time/") or key.endswith("_per_s") or key.endswith("update_time_s")
+
+
+def stable(obj: Any) -> Any:
+    """``obj`` (JSON-like) without its wall-clock fields (:data:`VOLATILE`), at any depth."""
+    if isinstance(obj, dict):
+        return {k: stable(v) for k, v in obj.items() if not _volatile(str(k))}
+    if isinstance(obj, (list, tuple)):
+        return [stable(v) for v in obj]
+    return obj
+
+
+def differences(a: Any, b: Any, path: str = "", out: list[str] | None = None, limit: int = 8) -> list[str]:
+    """Where two states differ (up to ``limit`` paths): dict keys, list lengths, values; tensors and
+    arrays by :func:`max_abs_diff` (a NaN anywhere is a difference); float NaN equals NaN."""
+    import numpy as np
     import torch
 
+    out = [] if out is None else out
+    if len(out) >= limit:
+        return out
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            out.append(f"{path or '.'}: keys {sorted(map(str, set(a) ^ set(b)))[:5]} in one only")
+        for k in a.keys() & b.keys():
+            differences(a[k], b[k], f"{path}/{k}", out, limit)
+    elif isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        if len(a) != len(b):
+            out.append(f"{path}: {len(a)} entries vs {len(b)}")
+        for i, (x, y) in enumerate(zip(a, b)):
+            differences(x, y, f"{path}[{i}]", out, limit)
+    elif isinstance(a, (torch.Tensor, np.ndarray)) or isinstance(b, (torch.Tensor, np.ndarray)):
+        d = max_abs_diff(a, b)
+        if d != 0.0:
+            out.append(f"{path}: max |diff| {d:g}")
+    elif isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        pass
+    elif type(a) is not type(b) and not (isinstance(a, (int, float)) and isinstance(b, (int, float))):
+        out.append(f"{path}: {type(a).__name__} vs {type(b).__name__}")
+    elif a != b:
+        out.append(f"{path}: {str(a)[:40]} vs {str(b)[:40]}")
+    return out
+
+
+#: The parts of a run's state that :func:`compare` checks besides assignments, episodes and weights.
+STATE_PARTS = ("learners", "driver", "bank", "metrics", "eval")
+
+
+def final_state(run_dir: Path) -> dict[str, Any]:
+    """A finished run's whole state, from its newest checkpoint and its logs: assignments, logged
+    episode indices and policy weights, and (:data:`STATE_PARTS`) every learner's whole state
+    (weights, optimizer moments, schedule, version), the driver's counters and RNG states, the bank
+    (buffers, history, merges) and the service's counters, and the rows of metrics.jsonl and
+    eval.jsonl, wall-clock fields (:func:`stable`) left out."""
+    import numpy as np
+
+    from ..clustering.persistence import STATE_FILE
     from ..runtime.checkpoint import latest_valid_checkpoint, load_state
     from ..runtime.clustering_service import ClusteringService
     from ..runtime.logfiles import read_jsonl_segments
@@ -119,7 +185,19 @@ def final_state(run_dir: Path) -> dict[str, Any]:
         for f in sorted((ckpt / "learners").glob("policy-*.pt"))
     }
     logged = [int(r["episode_index"]) for r in read_jsonl_segments(run_dir, "episodes.jsonl")]
+    learners = {f.stem: load_state(f, str(f)) for f in sorted((ckpt / "learners").glob("*.pt"))}
+    bank_doc = json.loads((ckpt / "bank" / STATE_FILE).read_text())
+    with np.load(ckpt / "bank" / bank_doc["buffers_file"], allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    service_doc = ckpt / "bank" / "service.json"
+    bank = {"state": stable(bank_doc["state"]), "buffers": arrays,
+            "service": stable(json.loads(service_doc.read_text())) if service_doc.is_file() else None}  # fmt: skip
     return {
+        "learners": learners,
+        "driver": stable(json.loads((ckpt / "driver.json").read_text())),
+        "bank": bank,
+        "metrics": stable(list(read_jsonl_segments(run_dir, "metrics.jsonl"))),
+        "eval": stable(list(read_jsonl_segments(run_dir, "eval.jsonl"))),
         "assignments": [(int(r["policy_id"]), r["decision"]) for r in records],
         "assigned_episodes": [int(e) for r in records for e in r["episode_indices"]],
         "logged_episodes": logged,
@@ -165,7 +243,10 @@ def compare(clean: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
                 diffs[f"{pid}/{name}"] = max_abs_diff(t, other["weights"][pid][name])
     with_nan = sorted(k for k, d in diffs.items() if math.isnan(d))
     max_diff = math.nan if with_nan else max(diffs.values(), default=0.0)
+    state = {part: differences(clean.get(part), other.get(part)) for part in STATE_PARTS}
     return {
+        "state_identical": not any(state.values()),
+        "state_differences": {part: d for part, d in state.items() if d},
         "batches": len(clean["assignments"]),
         "assignments_identical": clean["assignments"] == other["assignments"],
         "assigned_exactly_once": sorted(other["assigned_episodes"]) == list(range(n)) == other["assigned_episodes"],
@@ -177,6 +258,15 @@ def compare(clean: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
         "weights_max_abs_diff": max_diff if same_keys else None,
         "weights_with_nan": with_nan,
     }
+
+
+STATE_PART_NAMES = {
+    "learners": "learners' states (weights, optimizer moments, schedules, versions)",
+    "driver": "driver's counters and RNG states",
+    "bank": "bank's buffers, history and counters",
+    "metrics": "rows of metrics.jsonl",
+    "eval": "rows of eval.jsonl",
+}
 
 
 def failures(report: dict[str, Any], kinds: set[str] | None = None) -> list[str]:
@@ -202,6 +292,8 @@ def failures(report: dict[str, Any], kinds: set[str] | None = None) -> list[str]
             out.append(f"the policies or their parameters differ from the clean run's (chaos run: {c['policies']})")
         else:
             out.append(f"the final weights differ from the clean run's (max |diff| {c['weights_max_abs_diff']:g})")
+    for part, where in c.get("state_differences", {}).items():
+        out.append(f"the {STATE_PART_NAMES[part]} differ from the clean run's: {'; '.join(where[:3])}")
     if "kills" in report:
         kills = report["kills"]
         missing = [k for k in KINDS if k in (kinds if kinds is not None else kills) and kills.get(k, 0) < 1]
@@ -235,9 +327,10 @@ class ChaosRun:
     def _start(self, args: list[str]) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.started = time.time()
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "covers_dist", *args], stdout=self.output, stderr=subprocess.STDOUT, env=env
-        )
+        self.proc = subprocess.Popen(  # its own process group: a driver-kill takes the Ray instance it starts too
+            [sys.executable, "-m", "covers_dist", *args], stdout=self.output, stderr=subprocess.STDOUT, env=env,
+            start_new_session=True,
+        )  # fmt: skip
 
     def _records(self) -> list[dict[str, Any]]:
         return list_processes(self.storage)
@@ -245,9 +338,12 @@ class ChaosRun:
     def _victims(self, kinds: set[str]) -> dict[str, list[dict[str, Any]]]:
         """Live processes of the current driver's run, by kind."""
         out: dict[str, list[dict[str, Any]]] = {}
-        for rec in self._records():
-            if rec["role"] in kinds and rec["started"] >= self.started and running(int(rec["pid"])):
-                out.setdefault(rec["role"], []).append(rec)
+        records = [r for r in self._records() if r["started"] >= self.started and running(int(r["pid"]))]
+        for kind in kinds:
+            role = ROLE.get(kind, kind)
+            for rec in records:
+                if rec["role"] == role and (role != "driver" or rec["pid"] == self.proc.pid):
+                    out.setdefault(kind, []).append(rec)
         return out
 
     def _driver_ready(self) -> bool:
@@ -302,6 +398,16 @@ class ChaosRun:
     def _kill(self, kind: str, rec: dict[str, Any]) -> None:
         assert self.proc is not None
         name = kind if rec.get("index") is None else f"{kind}-{rec['index']}"
+        if kind == "driver-kill":
+            left = [r for r in self._records() if r["started"] >= self.started and r["pid"] != self.proc.pid]
+            os.killpg(self.proc.pid, signal.SIGKILL)  # the driver, and the Ray head it started, at once
+            self.proc.wait(60)
+            self._reap(left)
+            self.kills[kind] += 1
+            self.log(f"kill {sum(self.kills.values()):3d}: driver (pid {self.proc.pid}, SIGKILL of its process group); "
+                     "resuming")  # fmt: skip
+            self._start(["train", "--resume", str(self.run_dir)])
+            return
         if kind == "driver":
             os.kill(rec["pid"], signal.SIGTERM)
             self.proc.wait(600)
@@ -321,6 +427,18 @@ class ChaosRun:
             return
         self.kills[kind] += 1
         self.log(f"kill {sum(self.kills.values()):3d}: {name} (pid {rec['pid']}, SIGKILL)")
+
+
+    def _reap(self, records: list[dict[str, Any]], timeout_s: float = 30.0) -> None:
+        """Wait for the processes a killed driver started (workers, learners, the clustering actor,
+        the HTTP service) to go with it; SIGKILL, by PID, any still running after ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and any(running(int(r["pid"])) for r in records):
+            time.sleep(0.2)
+        for r in records:
+            if running(int(r["pid"])):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(int(r["pid"]), signal.SIGKILL)
 
 
 # ---- node loss ------------------------------------------------------------------------------------
@@ -515,7 +633,8 @@ def run(args: argparse.Namespace) -> int:
     report["comparison"] = compare(final_state(out / "clean"), final_state(chaos_dir))
     report["out"] = str(out) if args.out else None
     c = report["comparison"]
-    same = ("assignments_identical", "weights_identical", "assigned_exactly_once", "logged_exactly_once")
+    same = ("assignments_identical", "weights_identical", "assigned_exactly_once", "logged_exactly_once",
+            "state_identical")  # fmt: skip
     report["equal_to_clean"] = all(bool(c[k]) for k in same)
     if "kills_total" in report:
         report["target_kills"] = TARGET_KILLS

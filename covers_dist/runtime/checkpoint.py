@@ -4,7 +4,7 @@ Layout of ``RUN_DIR/checkpoints/``::
 
     ckpt-000012/            one complete checkpoint (iteration 12)
         manifest.json       format version, iteration, and the sha256 of every other file
-        driver.json         counters, stream position, RNG state
+        driver.json         counters, stream position, the latest success per group
         config.yaml         the run's config
         bank/               the policy bank (covers_dist.clustering persistence format)
         learners/policy-N.pt  model + optimizer + schedule state of each learner (torch.save)

@@ -14,7 +14,6 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 import yaml
 
@@ -37,14 +36,17 @@ def _driver_state(trainer: Any) -> dict[str, Any]:
         "env_steps": trainer.env_steps,
         "current_policy": trainer.current_policy,
         "weight_version": trainer.weights.version,
+        "policy_versions": {str(pid): v for pid, v in trainer.weights.versions.items()},
         "policies": sorted(trainer.weights.versions),
         "groups": trainer.tally.groups,
         "acted_other": trainer.tally.acted_other,
         "policy_success": {str(pid): v for pid, v in trainer.tally.policy_success.items()},
-        "stream": trainer.stream.state_dict(),
-        "numpy_rng": np.random.get_state()[1].tolist(),
+        # each group's latest training success and return: the rows after a resume carry them as the
+        # unbroken run's do
+        "success": trainer.tally.success,
+        "returns": trainer.tally.returns,
+        "stream": trainer.stream.state_dict(),  # its position: every draw is a function of the seed and the episode
         "network_probe": trainer.backend.network_probe().tolist(),
-        "torch_rng": torch.get_rng_state().tolist(),
     }
 
 
@@ -86,6 +88,8 @@ def restore_trainer(trainer: Any, path: Path) -> None:
     trainer.tally.groups.update(state.get("groups", {}))
     trainer.tally.acted_other = int(state.get("acted_other", 0))
     trainer.tally.policy_success = {int(pid): list(v) for pid, v in state.get("policy_success", {}).items()}
+    trainer.tally.success = {t: float(v) for t, v in state.get("success", {}).items()}
+    trainer.tally.returns = {t: float(v) for t, v in state.get("returns", {}).items()}
     trainer.stream.load_state_dict(state["stream"])
     warning = probe_mismatch(state.get("network_probe"), backend.network_probe(), trainer.cfg)
     if warning:
@@ -93,20 +97,24 @@ def restore_trainer(trainer: Any, path: Path) -> None:
     backend.call_clustering("restore", pack_dir(path / "bank"))
     pending = state.get("pending_update")
     drop_live_state(trainer.cfg, keep_policies=state["policies"])  # policies created after this checkpoint
+    versions = state.get("policy_versions", {})
     for pid in state["policies"]:
         backend.ensure_learner(pid)
         learner_state = load_state(path / "learners" / f"policy-{pid}.pt", str(path / "learners" / f"policy-{pid}.pt"))
         backend.call_learner(pid, "load_state_dict", learner_state)
         weights.learner_versions[pid], newest = backend.call_learner(pid, "weights")
+        # published under the version it had (a checkpoint before policy_versions: a new one), so the
+        # run-wide counter goes on as in the unbroken run
+        version = versions.get(str(pid))
         if pending is not None and pending["policy_id"] == pid:
             # the update in flight when the checkpoint was written: workers keep sampling with
             # the weights before it until the next iteration publishes it, as they would have
             sampling = load_state(path / "learners" / f"sampling-{pid}.pt", str(path / "learners" / f"sampling-{pid}.pt"))
-            weights.publish(pid, sampling)
+            weights.publish(pid, sampling, version)
             stats = {k.split("/", 1)[1]: v for k, v in pending["stats"].items()}
             weights.pending = (pid, CompletedUpdate(stats, backend.publish(newest)))
         else:
-            weights.publish(pid, newest)
+            weights.publish(pid, newest, version)
     weights.prepare_next_learner()
     trainer.evaluation.rewind(trainer.iteration)
     trainer.log(f"resumed from {path} (iteration {trainer.iteration}, {trainer.env_steps} env steps)")

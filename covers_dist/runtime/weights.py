@@ -52,17 +52,20 @@ class PolicyWeights:
         """``{policy id: (version, handle)}`` of the published weights (what workers sample with)."""
         return {pid: (self.versions[pid], self.handles[pid]) for pid in self.versions}
 
-    def publish(self, policy_id: int, weights: Any) -> None:
-        """New weights (a state dict) to the object store under a new version."""
-        self.publish_handle(policy_id, self.backend.publish(weights))
+    def publish(self, policy_id: int, weights: Any, version: int | None = None) -> None:
+        """New weights (a state dict) to the object store under a new version (``version``: the
+        one they had when a checkpoint was written, on a resume)."""
+        self.publish_handle(policy_id, self.backend.publish(weights), version)
 
-    def publish_handle(self, policy_id: int, handle: Any) -> None:
-        """Weights already in the object store get a new version; the clustering service (features,
-        the HTTP service's act) loads them now, workers when they next sample with them."""
-        self.version += 1
-        self.versions[policy_id] = self.version
+    def publish_handle(self, policy_id: int, handle: Any, version: int | None = None) -> None:
+        """Weights already in the object store get a new version (or ``version``, restored); the
+        clustering service (features, the HTTP service's act) loads them now, workers when they
+        next sample with them."""
+        if version is None:
+            self.version += 1
+        self.versions[policy_id] = self.version if version is None else int(version)
         self.handles[policy_id] = handle
-        self.backend.call_clustering("sync_weights", {policy_id: (self.version, handle)})
+        self.backend.call_clustering("sync_weights", {policy_id: (self.versions[policy_id], handle)})
 
     def start_policy(self, policy_id: int) -> None:
         """A new policy's learner, its initial weights published; the next learner started ahead."""
