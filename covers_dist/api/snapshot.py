@@ -15,6 +15,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,7 +47,7 @@ class Snapshot:
     summary: dict[str, Any]
     last: dict[str, Any] | None
     metrics: dict[str, Any]
-    history: list[dict[str, Any]] = field(default_factory=list)
+    history: Sequence[dict[str, Any]] = field(default_factory=list)  # a HistoryView of the cache
     as_of: float = 0.0
     env_steps_per_s: float | None = None
     per_task: dict[str, Any] = field(default_factory=dict)  # latest success/<task>, return/<task> seen
@@ -55,6 +56,26 @@ class Snapshot:
     @property
     def policies(self) -> dict[int, dict[str, Any]]:
         return {int(p["policy_id"]): p for p in self.summary.get("policies", [])}
+
+
+class HistoryView(Sequence):
+    """The first ``n`` records of the cache's history list, without copying it: a snapshot costs the
+    same however long the history (the list only grows; a restarted service gets a new list)."""
+
+    def __init__(self, items: list[dict[str, Any]], n: int) -> None:
+        self._items, self._n = items, min(int(n), len(items))
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, index: Any) -> Any:
+        if isinstance(index, slice):
+            start, stop, step = index.indices(self._n)
+            return self._items[start:stop:step]
+        i = index + self._n if index < 0 else index
+        if not 0 <= i < self._n:
+            raise IndexError(index)
+        return self._items[i]
 
 
 class SnapshotCache:
@@ -86,7 +107,7 @@ class SnapshotCache:
                     break
                 self._history.extend(json_safe(r) for r in page)
             metrics = json_safe(metrics)
-            snap = Snapshot(json_safe(summary), json_safe(last), metrics, self._history[:total], time.time())
+            snap = Snapshot(json_safe(summary), json_safe(last), metrics, HistoryView(self._history, total), time.time())
             progress = metrics.get("progress") or {}
             snap.env_steps_per_s = self._rate(progress)
             self._per_task.update((k, v) for k, v in progress.items() if k.startswith(("success/", "return/")))

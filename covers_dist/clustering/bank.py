@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -29,7 +30,7 @@ from .calibration import max_draws, permutation_test, splits_suffice
 from .buffer import REPLACEMENT_RULES, ObservationBuffer, check_obs
 from .distances import get_distance
 from .features import FEATURE_NORMS, FeatureFn, check_features, normalize_pair
-from .metrics import adjusted_rand_index, confusion_table, policy_counts
+from .metrics import table_metrics
 from .policy_entry import PolicyEntry, batch_group, check_int
 
 __all__ = ["PolicyBank", "MODES"]
@@ -152,6 +153,9 @@ class PolicyBank:
         self.current_policy_id: int | None = None
         self.episode_policy: dict[int, int] = {}  # episode index -> policy id (assigned episodes)
         self.labels: dict[int, tuple[int, int]] = {}  # episode index -> (policy id, true group id)
+        #: (policy id, true group id) -> labelled episodes: the metrics in time that does not grow
+        #: with the run (kept with ``labels``; :meth:`rebuild_label_table` after replacing them)
+        self.label_table: Counter[tuple[int, int]] = Counter()
         self.group_policy: dict[int, int] = {}  # ground-truth mode: group id -> policy id
         self.next_episode = 0
         if metric == "wasserstein":
@@ -435,7 +439,7 @@ class PolicyBank:
         if record.true_groups is not None:
             entry.group_counts.update(record.true_groups)
             for e, g in zip(record.episode_indices, record.true_groups):
-                self.labels[e] = (pid, g)
+                self._label(e, pid, g)
         self.next_episode = max(self.next_episode, max(record.episode_indices) + 1)
         self.current_policy_id = pid
         record.wall_time_ms = (time.perf_counter() - t0) * 1e3
@@ -506,6 +510,7 @@ class PolicyBank:
         keep.group_counts.update(gone.group_counts)
         self.episode_policy.update((e, into) for e in gone.episodes)
         self.labels = {e: ((into if p == retired else p), g) for e, (p, g) in self.labels.items()}
+        self.rebuild_label_table()
         self.group_policy = {g: (into if p == retired else p) for g, p in self.group_policy.items()}
         if self.current_policy_id == retired:
             self.current_policy_id = into
@@ -548,25 +553,31 @@ class PolicyBank:
             e = check_int("episode_index", episode_index, 0)
             if e not in self.labels:
                 g = check_int("group_id", group_id, 0)
-                self.labels[e] = (int(policy_id), g)
+                self._label(e, int(policy_id), g)
                 entry.group_counts[g] += 1
                 self.next_episode = max(self.next_episode, e + 1)
 
     # ---- metrics ----------------------------------------------------------------------------------
+    def _label(self, episode: int, policy_id: int, group_id: int) -> None:
+        old = self.labels.get(episode)
+        if old is not None:
+            self.label_table[old] -= 1
+        self.labels[episode] = (policy_id, group_id)
+        self.label_table[(policy_id, group_id)] += 1
+
+    def rebuild_label_table(self) -> None:
+        """Recount :attr:`label_table` from :attr:`labels` (after loading or relabelling them)."""
+        self.label_table = Counter(self.labels.values())
+
     def label_pairs(self) -> tuple[list[int], list[int]]:
         """(policy ids, true group ids) of every labelled episode, in episode order."""
         keys = sorted(self.labels)
         return [self.labels[e][0] for e in keys], [self.labels[e][1] for e in keys]
 
     def metrics(self) -> dict[str, Any]:
-        """ARI over every labelled episode so far, per-policy counts, and the confusion table."""
-        policies, groups = self.label_pairs()
-        return {
-            "ari": adjusted_rand_index(policies, groups),
-            "episodes_labelled": len(policies),
-            "policy_counts": {str(k): v for k, v in policy_counts(policies).items()},
-            "confusion": confusion_table(policies, groups),
-        }
+        """ARI over every labelled episode so far, per-policy counts, and the confusion table, from
+        the label table (their cost grows with policies and groups, not with episodes)."""
+        return table_metrics(self.label_table)
 
     def summary(self) -> dict[str, Any]:
         """JSON-safe overview: settings, current policy, every entry, and the metrics."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from .calibration import accepts
 
-__all__ = ["adjusted_rand_index", "calibration_tail", "confusion_table", "policy_counts"]
+__all__ = ["adjusted_rand_index", "calibration_tail", "confusion_table", "policy_counts", "table_metrics"]
 
 
 def _pairs(policy_ids: Sequence[int], group_ids: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
@@ -46,11 +46,17 @@ def adjusted_rand_index(policy_ids: Sequence[int], group_ids: Sequence[int]) -> 
     _, g_codes = np.unique(g, return_inverse=True)
     table = np.zeros((int(p_codes.max()) + 1, int(g_codes.max()) + 1), dtype=np.int64)
     np.add.at(table, (p_codes, g_codes), 1)
+    return _ari(table)
+
+
+def _ari(table: np.ndarray) -> float:
+    """ARI of a policy x group contingency table (see :func:`adjusted_rand_index`)."""
 
     def pairs(counts: np.ndarray) -> int:
         return sum(int(c) * (int(c) - 1) // 2 for c in counts.ravel())
 
-    index, a, b, total = pairs(table), pairs(table.sum(axis=1)), pairs(table.sum(axis=0)), pairs(np.array([p.size]))
+    n = int(table.sum())
+    index, a, b, total = pairs(table), pairs(table.sum(axis=1)), pairs(table.sum(axis=0)), n * (n - 1) // 2
     if total == 0:
         return 1.0
     expected = a * b / total
@@ -58,6 +64,27 @@ def adjusted_rand_index(policy_ids: Sequence[int], group_ids: Sequence[int]) -> 
     if denominator == 0:
         return 1.0
     return float((index - expected) / denominator)
+
+
+def table_metrics(counts: dict[tuple[int, int], int]) -> dict[str, Any]:
+    """ARI, episodes, per-policy counts and the confusion table from ``{(policy, group): episodes}``
+    (what :class:`~covers_dist.clustering.bank.PolicyBank` keeps as episodes are labelled): the same
+    figures as :func:`adjusted_rand_index`, :func:`policy_counts` and :func:`confusion_table` over the
+    episodes, in time that does not grow with their number."""
+    cells = {k: int(v) for k, v in counts.items() if v}
+    policies = sorted({p for p, _ in cells})
+    groups = sorted({g for _, g in cells})
+    row = {pid: i for i, pid in enumerate(policies)}
+    col = {gid: j for j, gid in enumerate(groups)}
+    table = np.zeros((len(policies), len(groups)), dtype=np.int64)
+    for (p, g), c in cells.items():
+        table[row[p], col[g]] = c
+    return {
+        "ari": _ari(table) if cells else None,
+        "episodes_labelled": int(table.sum()),
+        "policy_counts": {str(p): int(table[row[p]].sum()) for p in policies},
+        "confusion": {"policies": policies, "groups": groups, "counts": table.tolist()},
+    }
 
 
 def policy_counts(policy_ids: Sequence[int]) -> dict[int, int]:

@@ -230,6 +230,7 @@ def _rebuild(state: dict[str, Any], arrays: dict[str, np.ndarray], feature_fn: A
     bank.next_episode = int(state["next_episode"])
     bank.history = [AssignmentRecord.from_dict(r) for r in state["history"]]
     bank.labels = {int(e): (int(p), int(g)) for e, p, g in state["labels"]}
+    bank.rebuild_label_table()
     bank.group_policy = {int(g): int(p) for g, p in state["group_policy"]}
     if state.get("calibration_rng") is not None:  # absent in banks saved before the calibrated rule
         bank.calibration_rng.bit_generator.state = state["calibration_rng"]

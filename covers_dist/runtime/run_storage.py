@@ -104,6 +104,11 @@ def drop_live_state(cfg: Config, keep_policies: list[int] | None = None) -> None
         store.delete_dir(CLUSTERING_LIVE)
 
 
+#: (storage key, (size, mtime)) of each log file this process copied to a storage: a checkpoint
+#: copies only what changed since (the live logs; a rotated segment once), not every segment again.
+_UPLOADED: dict[str, tuple[int, int]] = {}
+
+
 def push_checkpoint(cfg: Config, path: Path) -> None:
     """Copy the checkpoint at ``path`` and the run's logs to the storage (when it is apart from
     the run directory); keep the newest ``KEEP`` checkpoints there."""
@@ -116,7 +121,12 @@ def push_checkpoint(cfg: Config, path: Path) -> None:
     run_dir = Path(cfg.runtime.run_dir)
     for f in sorted(run_dir.iterdir()):
         if f.is_file() and not f.name.startswith(".") and f.name != RUN_MARKER:  # the token is the driver's own
+            stat = f.stat()
+            key, seen = (store.describe(f.name), (stat.st_size, stat.st_mtime_ns))
+            if _UPLOADED.get(key) == seen:  # unchanged since this process copied it (a closed log segment)
+                continue
             store.write_bytes(f.name, f.read_bytes())
+            _UPLOADED[key] = seen
 
 
 def storage_holds_a_run(cfg: Config) -> bool:
