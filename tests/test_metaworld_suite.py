@@ -131,7 +131,7 @@ def test_success_bonus_config_is_checked():
     env = make_task(cfg.env, "reach-v3", "e")
     assert env.unwrapped.success_bonus_radius == 0.5
     env.close()
-    for value, words in (("0", "> 0"), ("1.5", "<= 1"), ("nan", "fraction in")):
+    for value, words in (("0", "> 0"), ("1.5", "<= 1"), ("nan", "expected a finite number")):
         with pytest.raises(ConfigError, match=words):
             load_config("configs/stream_cpu.yaml", ["env.success_bonus=1", f"env.success_bonus_radius={value}"])
     with pytest.raises(ConfigError, match="set env.success_bonus > 0"):

@@ -30,6 +30,16 @@ def ends_as_unbroken(trainer, run_dir, unbroken):
     assert losses(run_dir) == losses(unbroken[2])
 
 
+def resume_ends_as_unbroken(cfg, run_dir, unbroken):
+    """``train --resume`` of the run of ``cfg`` finishes where the unbroken run ended."""
+    resumed = Trainer(cfg, resume=True, log=lambda *_: None)
+    try:
+        assert resumed.run()["status"] == "finished"
+        ends_as_unbroken(resumed, run_dir, unbroken)
+    finally:
+        resumed.close()
+
+
 @pytest.fixture(scope="module")
 def s3():
     with s3_server() as server:
@@ -89,12 +99,7 @@ def test_a_lasting_s3_outage_stops_cleanly_and_a_resume_ends_as_the_unbroken_run
         assert ckpt is not None and result["checkpoint"] == str(ckpt)
         verify_checkpoint(ckpt)
         gate.open()  # the storage is back
-        resumed = Trainer(cfg, resume=True, log=lambda *_: None)
-        try:
-            assert resumed.run()["status"] == "finished"
-            ends_as_unbroken(resumed, tmp_path, tiny_serial_run)
-        finally:
-            resumed.close()
+        resume_ends_as_unbroken(cfg, tmp_path, tiny_serial_run)
     finally:
         gate.close()
 
@@ -137,9 +142,4 @@ def test_a_full_disk_stops_cleanly_and_a_resume_ends_as_the_unbroken_run(small_d
     verify_checkpoint(ckpt)
     assert not list((run_dir / "checkpoints").glob(".tmp-*"))  # no half-written checkpoint left behind
     (small_disk / "ballast").unlink()  # room again
-    resumed = Trainer(cfg, resume=True, log=lambda *_: None)
-    try:
-        assert resumed.run()["status"] == "finished"
-        ends_as_unbroken(resumed, run_dir, tiny_serial_run)
-    finally:
-        resumed.close()
+    resume_ends_as_unbroken(cfg, run_dir, tiny_serial_run)
