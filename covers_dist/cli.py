@@ -23,6 +23,7 @@ from .commands._common import clean_help
 from .config import ConfigError
 from .clustering.persistence import CheckpointError
 from .runtime.lease import LeaseHeld
+from .storage import StorageError
 
 
 def _discover(package: str) -> list:
@@ -72,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, FileExistsError, CheckpointError, LeaseHeld) as e:
         print(f"covers-dist: {e}", file=sys.stderr)
         return 2
+    except StorageError as e:  # an outage past its retries, a full disk, storage that cannot be opened
+        print(f"covers-dist: storage: {e}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print("covers-dist: interrupted", file=sys.stderr)
         return 130

@@ -42,6 +42,7 @@ from ..storage import Storage, StorageError, is_uri, redact_uri
 from .checkpoint import latest_valid_checkpoint
 from .clustering_service import SINGLE_POLICY_METHODS
 from .evaluation import PeriodicEvaluation
+from .lease import LeaseHeld, RunLease
 from .logfiles import remove_log
 from .metrics import MetricsWriter, Progress
 from .processes import announce
@@ -49,7 +50,6 @@ from .ray_setup import check_run_dir_outlives_the_job
 from .rollout import EpisodeSpec
 from .run_storage import CHECKPOINTS, CLUSTERING_LIVE, LEARNERS_LIVE, PROCESSES
 from .run_storage import clear_storage, drop_live_state, fetch_run, run_store, storage_holds_a_run, storage_location
-from .lease import LeaseHeld, RunLease
 from .tally import EpisodeTally, iteration_row
 from .trainer_checkpoint import restore_trainer, save_trainer
 from .weights import PolicyWeights
@@ -346,6 +346,7 @@ def _in_order(plan: list[list[EpisodeSpec]]) -> list[EpisodeSpec]:
 
 def _field(item: Any, name: str) -> Any:
     return item[name] if isinstance(item, dict) else getattr(item, name)
+
 
 def take_lease(cfg: Config, log: Callable[[str], None] = print) -> RunLease:
     """This driver's lease on the run of ``cfg`` (:mod:`covers_dist.runtime.lease`); raises
