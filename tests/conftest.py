@@ -76,6 +76,8 @@ def tiny_serial_run(tmp_path_factory):
 LONGEST_FIRST = (
     "test_chaos.py",
     "test_evaluation.py",
+    "test_storage_faults.py",
+    "test_lease.py",
     "test_plain_shell.py",
     "test_api_ray.py",
     "test_pipeline.py",
