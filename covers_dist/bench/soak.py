@@ -18,6 +18,7 @@ shows as a ratio that grows with ``--iterations``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -140,7 +141,11 @@ def soak(iterations: int, window: int, checkpoint_every: int, seed: int, overrid
     rows = [r for r in read_jsonl_segments(run_dir, "metrics.jsonl") if "time/assign" in r]
     for phase in ("assign", "record"):
         series[f"{phase}_ms"] = [1e3 * float(r.get(f"time/{phase}", 0.0)) for r in rows]
+    from ..results.provenance import code_commit, cpu_model
+
     return {
+        "cpu": cpu_model(),
+        **code_commit(),
         "iterations": len(series["iteration_s"]),
         "episodes": trainer.next_episode,
         "env_steps": trainer.env_steps,
@@ -156,8 +161,11 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("covers-dist bench soak: --iterations must be >= 10 and --window >= 1")
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="covers-soak-"))
     log = (lambda m: print(m, file=sys.stderr, flush=True)) if args.json else print
+    quiet = contextlib.redirect_stdout(sys.stderr) if args.json else contextlib.nullcontext()
     try:
-        report = soak(args.iterations, args.window, args.checkpoint_every, args.seed, args.overrides, out / "run", log)
+        with quiet:  # the trainer's progress lines: not on stdout when it carries the JSON
+            report = soak(args.iterations, args.window, args.checkpoint_every, args.seed, args.overrides,
+                          out / "run", log)  # fmt: skip
     finally:
         if not args.out:
             import shutil
