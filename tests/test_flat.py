@@ -106,3 +106,57 @@ def test_the_soak_benchmark_reports_start_end_and_slopes(tmp_path):
     for name in ("iteration_s", "snapshot_ms", "rss_mib", "assign_ms", "record_ms"):
         s = report["series"][name]
         assert s["start"] > 0 and s["end"] > 0 and np.isfinite(s["slope_per_1000"]), (name, s)
+
+
+def _service_with_history(cfg, storage, batches):
+    """A clustering service on ``storage`` after ``batches`` assignments of toy episodes."""
+    from api_helpers import initial_obs, policy_weights
+
+    from covers_dist.runtime.clustering_service import ClusteringService
+
+    service = ClusteringService(cfg, storage=str(storage))
+    weights = {0: (1, policy_weights(cfg, 0))}
+    for it in range(batches):
+        task, g = [("reach", "e"), ("push", "r")][it % 2]
+        idx = [2 * it, 2 * it + 1]
+        record = service.assign(it, initial_obs(cfg, task, g, idx), idx, [list(cfg.env.tasks).index(task)] * 2, weights)
+        pid = int(record["policy_id"])
+        if pid not in weights:
+            weights[pid] = (1, policy_weights(cfg, pid))
+            service.sync_weights({pid: weights[pid]})
+        service.record_episodes([{"episode_index": i, "policy_id": pid, "success": 1.0, "return": 1.0} for i in idx])
+    return service
+
+
+def test_the_live_state_journals_its_history_and_a_restart_reads_it_all_back(tmp_path, monkeypatch):
+    """The live state holds only the records after the last sealed journal chunk (what a persist
+    writes stays the same size as the history grows); a restarted service reads the chunks and the
+    state back into the same history; a restore from a (whole) checkpoint bank starts the journal over."""
+    import io
+    import tarfile
+
+    from api_helpers import smoke_config
+
+    from covers_dist.runtime import clustering_service as cs
+
+    monkeypatch.setattr(cs, "HISTORY_CHUNK", 4)
+    cfg = smoke_config("clustering.initial_frames=1", "env.image_size=16", "network.channels=[2,4]", "network.hidden=8")
+    store = tmp_path / "store"
+    service = _service_with_history(cfg, store, 11)
+    chunks = sorted(p.name for p in (store / "clustering_live" / "history").iterdir())
+    assert chunks == ["000000.json", "000001.json"]
+
+    def live_records():
+        with tarfile.open(fileobj=io.BytesIO((store / cs.LIVE_STATE).read_bytes())) as tar:
+            doc = json.load(tar.extractfile("bank.json"))
+        return doc["state"].get("history_offset", 0), len(doc["state"]["history"])
+
+    assert live_records() == (8, 3)
+    restarted = cs.ClusteringService(cfg, storage=str(store))
+    assert [r.to_dict() for r in restarted.bank.history] == [r.to_dict() for r in service.bank.history]
+    assert restarted.metrics()["ari"] == service.metrics()["ari"] and restarted.recorded_through == 21
+    whole = service.snapshot()  # what a checkpoint holds: the whole history
+    restarted.restore(whole)
+    assert live_records() == (0, 11)
+    again = cs.ClusteringService(cfg, storage=str(store))
+    assert len(again.bank.history) == 11

@@ -25,7 +25,7 @@ import os
 import secrets
 from collections import Counter
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -101,8 +101,9 @@ def _entry_state(e: PolicyEntry, prefix: str, arrays: dict[str, np.ndarray]) -> 
     }
 
 
-def bank_state(bank: PolicyBank) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """The bank as (JSON-safe state, arrays)."""
+def bank_state(bank: PolicyBank, history_from: int = 0) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The bank as (JSON-safe state, arrays); ``history_from``: the assignment records before it are
+    left out (kept elsewhere, e.g. the clustering service's journal) and ``history_offset`` says so."""
     arrays: dict[str, np.ndarray] = {}
     entries = [_entry_state(bank.entries[pid], "p", arrays) for pid in bank.policy_ids]
     retired = [_entry_state(bank.retired[pid], "r", arrays) for pid in sorted(bank.retired)]
@@ -116,18 +117,21 @@ def bank_state(bank: PolicyBank) -> tuple[dict[str, Any], dict[str, np.ndarray]]
         "entries": entries,
         "retired": retired,
         "merges": bank.merges,
-        "history": [r.to_dict() for r in bank.history],
+        "history": [r.to_dict() for r in bank.history[history_from:]],
         "labels": [[e, p, g] for e, (p, g) in sorted(bank.labels.items())],
         "group_policy": [[g, p] for g, p in sorted(bank.group_policy.items())],
     }
+    if history_from:
+        state["history_offset"] = int(history_from)
     return state, arrays
 
 
-def save_bank(bank: PolicyBank, directory: str | os.PathLike) -> Path:
-    """Write ``bank`` to ``directory`` (created if needed); returns the path of ``bank.json``."""
+def save_bank(bank: PolicyBank, directory: str | os.PathLike, history_from: int = 0) -> Path:
+    """Write ``bank`` to ``directory`` (created if needed); returns the path of ``bank.json``.
+    ``history_from``: see :func:`bank_state` (0: the whole history, as every checkpoint holds it)."""
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    state, arrays = bank_state(bank)
+    state, arrays = bank_state(bank, history_from)
     npz = out / f"buffers-{secrets.token_hex(6)}.npz"
     _write_atomic(npz, lambda f: np.savez(f, **arrays))
     doc = {
@@ -185,26 +189,36 @@ def _read_arrays(directory: Path, doc: dict[str, Any]) -> dict[str, np.ndarray]:
         raise CheckpointError(f"{npz}: unreadable buffers ({e})") from None
 
 
-def load_bank(directory: str | os.PathLike, feature_fn: FeatureFn | None = None, config: Any = None) -> PolicyBank:
+def load_bank(
+    directory: str | os.PathLike,
+    feature_fn: FeatureFn | None = None,
+    config: Any = None,
+    history_head: Callable[[int], list[dict[str, Any]]] | None = None,
+) -> PolicyBank:
     """Restore a bank written by :func:`save_bank`.
 
     ``config`` (a :class:`covers_dist.config.Config`), when given, must agree with the saved
     settings (metric, threshold, buffer size, replacement, cap, initial frames, feature norm, mode,
     decision rule, and under the calibrated rule its false-split rate and samples);
-    a difference raises :class:`CheckpointError` naming the fields.
+    a difference raises :class:`CheckpointError` naming the fields. ``history_head(n)`` gives the
+    first ``n`` assignment records of a bank saved with ``history_from=n`` (a live state whose
+    earlier records are in a journal).
     """
     directory = Path(directory)
     doc = _read_doc(directory)
     arrays = _read_arrays(directory, doc)
     try:
-        return _rebuild(doc["state"], arrays, feature_fn, config)
+        return _rebuild(doc["state"], arrays, feature_fn, config, history_head)
     except CheckpointError:
         raise
     except (KeyError, TypeError, ValueError, IndexError) as e:
         raise CheckpointError(f"{directory / STATE_FILE}: inconsistent bank state ({type(e).__name__}: {e})") from None
 
 
-def _rebuild(state: dict[str, Any], arrays: dict[str, np.ndarray], feature_fn: Any, config: Any) -> PolicyBank:
+def _rebuild(
+    state: dict[str, Any], arrays: dict[str, np.ndarray], feature_fn: Any, config: Any,
+    history_head: Callable[[int], list[dict[str, Any]]] | None = None,
+) -> PolicyBank:  # fmt: skip
     settings = {**_RULE_SETTINGS, **state["settings"]}  # banks saved before the rule settings existed
     if config is not None:
         expected = PolicyBank.from_config(config)
@@ -228,7 +242,15 @@ def _rebuild(state: dict[str, Any], arrays: dict[str, np.ndarray], feature_fn: A
     if bank.current_policy_id is not None and bank.current_policy_id not in bank.entries:
         raise CheckpointError(f"current_policy_id {bank.current_policy_id} is not in the saved bank")
     bank.next_episode = int(state["next_episode"])
-    bank.history = [AssignmentRecord.from_dict(r) for r in state["history"]]
+    offset = int(state.get("history_offset", 0))
+    head: list[dict[str, Any]] = []
+    if offset:  # the first records are kept apart (the clustering service's journal)
+        if history_head is None:
+            raise CheckpointError(f"the bank holds assignment records from {offset} on only, and no journal was given")
+        head = history_head(offset)
+        if len(head) != offset:
+            raise CheckpointError(f"the journal holds {len(head)} assignment records, the bank expects {offset}")
+    bank.history = [AssignmentRecord.from_dict(r) for r in [*head, *state["history"]]]
     bank.labels = {int(e): (int(p), int(g)) for e, p, g in state["labels"]}
     bank.rebuild_label_table()
     bank.group_policy = {int(g): int(p) for g, p in state["group_policy"]}

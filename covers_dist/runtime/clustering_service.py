@@ -49,6 +49,10 @@ SINGLE_POLICY_METHODS = ("equi", "cnn")
 EVAL_PREFIX = "eval/"
 #: The live state's object in the run's storage
 LIVE_STATE = f"{CLUSTERING_LIVE}/state.tar"
+#: The live state's journal: the assignment history in sealed chunks of HISTORY_CHUNK records, each
+#: written once; the live state holds the records after the last sealed chunk.
+HISTORY_JOURNAL = f"{CLUSTERING_LIVE}/history"
+HISTORY_CHUNK = 256
 
 
 class ClusteringService:
@@ -68,8 +72,9 @@ class ClusteringService:
         self.evaluation: dict[str, Any] = {}
         self.group_names: dict[int, str] = {i: t for i, t in enumerate(cfg.env.tasks)}
         self.bank = self._new_bank()
+        self._sealed = 0  # chunks of the history journal the live state in the storage relies on
         if self.store is not None and self.store.exists(LIVE_STATE):
-            self._restore(self.store.read_bytes(LIVE_STATE), persist=False)
+            self._restore(self.store.read_bytes(LIVE_STATE), persist=False, journal=True)
 
     # ---- construction ------------------------------------------------------------------------
     def _feature_fn(self) -> Any:
@@ -248,23 +253,25 @@ class ClusteringService:
             "evaluation": self.evaluation,
         }
 
-    def save(self, directory: str) -> None:
+    def save(self, directory: str, history_from: int = 0) -> None:
         """Bank + service counters into ``directory`` (the bank's own atomic format + a JSON file).
 
         Policy weights are not part of it: they live in the learners' checkpoint files.
         """
         with self._lock:
             path = Path(directory)
-            save_bank(self.bank, path)
+            save_bank(self.bank, path, history_from)
             tmp = path / ".service.json.tmp"
             tmp.write_text(json.dumps(self._service_state()))
             os.replace(tmp, path / "service.json")
 
-    def load(self, directory: str, weights: dict[int, Any] | None = None) -> None:
-        """Restore bank + counters saved by :meth:`save` (and optionally policy weights)."""
+    def load(self, directory: str, weights: dict[int, Any] | None = None, journal: bool = False) -> None:
+        """Restore bank + counters saved by :meth:`save` (and optionally policy weights);
+        ``journal``: the first assignment records come from the live state's history journal."""
         with self._lock:
             path = Path(directory)
-            self.bank = load_bank(path, feature_fn=self._feature_fn())
+            head = self._read_journal if journal else None
+            self.bank = load_bank(path, feature_fn=self._feature_fn(), history_head=head)
             if self.cfg.runtime.method in SINGLE_POLICY_METHODS:
                 self.bank.max_policies = 1
             service = path / "service.json"
@@ -279,24 +286,45 @@ class ClusteringService:
             for pid, w in (weights or {}).items():
                 self.sync_weights({int(pid): (-1, w)})
 
-    def snapshot(self) -> bytes:
-        """:meth:`save`'s files as one archive (what the driver writes into a checkpoint's ``bank/``)."""
+    def snapshot(self, history_from: int = 0) -> bytes:
+        """:meth:`save`'s files as one archive (what the driver writes into a checkpoint's ``bank/``:
+        the whole history; ``history_from``: the live state's, without the journal's records)."""
         with self._lock, tempfile.TemporaryDirectory(prefix="covers-bank-") as tmp:
-            self.save(tmp)
+            self.save(tmp, history_from)
             return pack_dir(tmp)
 
     def restore(self, data: bytes, weights: dict[int, Any] | None = None) -> None:
         """Load :meth:`snapshot`'s bytes (a checkpoint's ``bank/``); they become the live state."""
         self._restore(data, weights, persist=True)
 
-    def _restore(self, data: bytes, weights: dict[int, Any] | None = None, persist: bool = True) -> None:
+    def _restore(
+        self, data: bytes, weights: dict[int, Any] | None = None, persist: bool = True, journal: bool = False
+    ) -> None:
         with self._lock, tempfile.TemporaryDirectory(prefix="covers-bank-") as tmp:
             unpack_dir(data, tmp)
-            self.load(tmp, weights)
-        if persist:
-            self._persist()
+            self._sealed = 0  # a checkpoint's bank is whole; a live state's sets it as it reads its journal
+            self.load(tmp, weights, journal=journal)
+        if persist and self.store is not None:  # the whole history: no chunk written before is relied on now
+            self.store.write_bytes(LIVE_STATE, self.snapshot())
 
     def _persist(self) -> None:
+        """The live state to the storage, in time that does not grow with the history: every
+        HISTORY_CHUNK records are sealed into a journal chunk written once (before the live state
+        that relies on it), and the live state holds the records after the last sealed chunk."""
         if self.store is None:
             return
-        self.store.write_bytes(LIVE_STATE, self.snapshot())
+        sealed = len(self.bank.history) // HISTORY_CHUNK
+        for i in range(self._sealed, sealed):  # chunks the live state in the storage does not rely on yet
+            records = [r.to_dict() for r in self.bank.history[i * HISTORY_CHUNK : (i + 1) * HISTORY_CHUNK]]
+            self.store.write_bytes(f"{HISTORY_JOURNAL}/{i:06d}.json", json.dumps(records, allow_nan=False).encode())
+        self.store.write_bytes(LIVE_STATE, self.snapshot(history_from=sealed * HISTORY_CHUNK))
+        self._sealed = sealed
+
+    def _read_journal(self, records: int) -> list[dict[str, Any]]:
+        """The first ``records`` assignment records, from the journal's chunks."""
+        assert self.store is not None and records % HISTORY_CHUNK == 0
+        out: list[dict[str, Any]] = []
+        for i in range(records // HISTORY_CHUNK):
+            out.extend(json.loads(self.store.read_bytes(f"{HISTORY_JOURNAL}/{i:06d}.json")))
+        self._sealed = records // HISTORY_CHUNK  # the live state read relies on these chunks
+        return out
