@@ -271,6 +271,7 @@ class ClusteringService:
         with self._lock:
             path = Path(directory)
             head = self._read_journal if journal else None
+            self._sealed = 0  # a whole bank relies on no chunk; a live state's sets it as it reads its journal
             self.bank = load_bank(path, feature_fn=self._feature_fn(), history_head=head)
             if self.cfg.runtime.method in SINGLE_POLICY_METHODS:
                 self.bank.max_policies = 1
@@ -302,7 +303,6 @@ class ClusteringService:
     ) -> None:
         with self._lock, tempfile.TemporaryDirectory(prefix="covers-bank-") as tmp:
             unpack_dir(data, tmp)
-            self._sealed = 0  # a checkpoint's bank is whole; a live state's sets it as it reads its journal
             self.load(tmp, weights, journal=journal)
         if persist and self.store is not None:  # the whole history: no chunk written before is relied on now
             self.store.write_bytes(LIVE_STATE, self.snapshot())
