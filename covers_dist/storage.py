@@ -158,9 +158,9 @@ class Storage:
                 raise ObjectMissing(f"{self.describe(key)} is missing") from e
             except OSError as e:
                 reason = _scrub(f"{type(e).__name__}: {e}", self.location)
-                if self.local or getattr(e, "errno", None) in _FULL or any(m in str(e) for m in PERMANENT):
-                    if getattr(e, "errno", None) in _FULL:
-                        raise StorageFull(f"no room to {what} {self.describe(key)}: {reason}") from None
+                if getattr(e, "errno", None) in _FULL:
+                    raise StorageFull(f"no room to {what} {self.describe(key)}: {reason}") from None
+                if self.local or any(m in str(e) for m in PERMANENT):  # waiting would not mend it
                     raise StorageError(f"cannot {what} {self.describe(key)}: {reason}") from None
                 tries += 1
                 if time.monotonic() + delay > deadline:

@@ -28,6 +28,7 @@ import uuid
 from typing import Any, Callable
 
 from ..storage import ObjectMissing, Storage, StorageError
+from .processes import running
 
 __all__ = ["RunLease", "LeaseHeld", "LEASE"]
 
@@ -41,16 +42,6 @@ _HELD_LOCK = threading.Lock()
 
 class LeaseHeld(RuntimeError):
     """Another driver holds (or took over) the run's lease."""
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # a process of another user: it exists
-        return True
-    return True
 
 
 def describe_holder(lease: dict[str, Any]) -> str:
@@ -97,7 +88,7 @@ class RunLease:
             if pid == os.getpid():
                 with _HELD_LOCK:
                     return lease["id"] not in _HELD  # a driver of this process that ended without releasing
-            if not _pid_alive(pid):
+            if not running(pid):  # gone, or a zombie
                 return True
         if time.time() - float(lease.get("renewed", 0)) > 2 * self.ttl_s:
             return True
