@@ -17,7 +17,7 @@ Compared at the end, from the two runs' final checkpoints and logs: the assignme
 batch (policy and decision), every episode index logged exactly once, every policy's final
 weights (exactly equal, or the largest difference; a NaN anywhere is a difference), and the whole
 state (:func:`final_state`): every learner's optimizer moments, schedule and version, the driver's
-counters and RNG states, the bank's buffers, history and counters, and every row of metrics.jsonl
+counters and stream position, the bank's buffers, history and counters, and every row of metrics.jsonl
 and eval.jsonl, with only wall-clock fields (:data:`VOLATILE`) left out. Any difference fails the
 verdict, named by its path.
 ``--node-loss workers|learners`` runs a different fault instead: a local 2-node cluster
@@ -163,7 +163,7 @@ STATE_PARTS = ("learners", "driver", "bank", "metrics", "eval")
 def final_state(run_dir: Path) -> dict[str, Any]:
     """A finished run's whole state, from its newest checkpoint and its logs: assignments, logged
     episode indices and policy weights, and (:data:`STATE_PARTS`) every learner's whole state
-    (weights, optimizer moments, schedule, version), the driver's counters and RNG states, the bank
+    (weights, optimizer moments, schedule, version), the driver's counters and stream position, the bank
     (buffers, history, merges) and the service's counters, and the rows of metrics.jsonl and
     eval.jsonl, wall-clock fields (:func:`stable`) left out."""
     import numpy as np
@@ -262,7 +262,7 @@ def compare(clean: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
 
 STATE_PART_NAMES = {
     "learners": "learners' states (weights, optimizer moments, schedules, versions)",
-    "driver": "driver's counters and RNG states",
+    "driver": "driver's counters and stream position",
     "bank": "bank's buffers, history and counters",
     "metrics": "rows of metrics.jsonl",
     "eval": "rows of eval.jsonl",
